@@ -1,0 +1,56 @@
+"""Sampling of action frames and their 6-D encoding (DESIGN §3).
+
+An action at a contact point is the gripper frame [forward, left, up]: ``up`` is the approach
+direction (into the surface, so opposite the outward normal), ``forward`` the orientation of
+the fingers about it. The network sees the frame as its first two defining columns (6-D).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+BASE_PRIMITIVES: tuple[str, ...] = ("push", "pull")
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-9)
+
+
+def sample_up(normals: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Uniform directions in the hemisphere facing into the surface: dot(up, normal) < 0.
+
+    (M, 3) normals -> (M, 3) unit approach directions.
+    """
+    normals = _unit(np.asarray(normals, dtype=np.float64).reshape(-1, 3))
+    d = _unit(rng.normal(size=normals.shape))
+    flip = np.sum(d * normals, axis=1) > 0
+    d[flip] *= -1.0
+    # a direction grazing the surface cannot push or pull anything: keep a 10 deg margin
+    cos = np.sum(d * normals, axis=1)
+    graze = cos > -0.17
+    d[graze] = _unit(d[graze] - normals[graze] * (cos[graze] + 0.17)[:, None])
+    return d.astype(np.float32)
+
+
+def sample_forward(up: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """A uniformly random unit vector perpendicular to each ``up`` (the gripper's roll)."""
+    up = _unit(np.asarray(up, dtype=np.float64).reshape(-1, 3))
+    r = rng.normal(size=up.shape)
+    r -= np.sum(r * up, axis=1, keepdims=True) * up
+    bad = np.linalg.norm(r, axis=1) < 1e-6
+    if bad.any():  # r parallel to up: use any perpendicular
+        r[bad] = np.cross(up[bad], np.array([1.0, 0.0, 0.0]))
+    return _unit(r).astype(np.float32)
+
+
+def encode_rotation(up: np.ndarray, forward: np.ndarray) -> np.ndarray:
+    """(M, 3), (M, 3) -> (M, 6): the two columns that define the gripper rotation."""
+    return np.concatenate([np.asarray(up), np.asarray(forward)], axis=-1).astype(np.float32)
+
+
+def gripper_rotation(up: np.ndarray, forward: np.ndarray) -> np.ndarray:
+    """(3,), (3,) -> (3, 3) rotation with columns [forward, left, up]."""
+    up = _unit(np.asarray(up, dtype=np.float64))
+    fwd = _unit(np.asarray(forward, dtype=np.float64) - np.dot(forward, up) * up)
+    left = np.cross(up, fwd)
+    return np.stack([fwd, left, up], axis=1)

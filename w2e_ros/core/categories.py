@@ -1,0 +1,72 @@
+"""Categories, instance splits and training combinations from ``config/categories.yaml``."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+
+import yaml
+
+from w2e_ros.paths import config_dir
+
+SPLITS = ("train", "explore", "test")
+
+
+class UnknownCategoryError(ValueError):
+    """A category, combination or split name that the configuration does not define."""
+
+
+@dataclass(frozen=True)
+class CategoryConfig:
+    categories: tuple[str, ...]
+    splits: dict[str, tuple[int, int]]
+    combinations: dict[str, tuple[str, ...]]
+    default_combination: str
+
+    def check_category(self, category: str) -> str:
+        if category not in self.categories:
+            raise UnknownCategoryError(
+                f"unknown category {category!r}; known: {', '.join(self.categories)}"
+            )
+        return category
+
+    def instances(self, category: str, split: str) -> list[int]:
+        """Instance ids of a category in a split (train / explore / test)."""
+        self.check_category(category)
+        if split not in self.splits:
+            raise UnknownCategoryError(f"unknown split {split!r}; known: {', '.join(SPLITS)}")
+        start, stop = self.splits[split]
+        return list(range(start, stop))
+
+    def combination(self, name: str | None = None) -> tuple[str, ...]:
+        """Training categories of a combination; the first is C_aff, all three are C_sim."""
+        name = name or self.default_combination
+        if name not in self.combinations:
+            raise UnknownCategoryError(
+                f"unknown combination {name!r}; known: {', '.join(self.combinations)}"
+            )
+        return self.combinations[name]
+
+    def novel(self, name: str | None = None) -> list[str]:
+        """The categories a combination never trains on (11 of the 14)."""
+        train = set(self.combination(name))
+        return [c for c in self.categories if c not in train]
+
+
+def _parse(path: Path) -> CategoryConfig:
+    raw = yaml.safe_load(path.read_text())
+    cats = tuple(raw["categories"])
+    combos = {k: tuple(v) for k, v in raw["combinations"].items()}
+    for name, members in combos.items():
+        unknown = [c for c in members if c not in cats]
+        if unknown or len(members) != 3:
+            raise ValueError(f"{path}: combination {name} is malformed: {members}")
+    splits = {k: (int(v[0]), int(v[1])) for k, v in raw["splits"].items()}
+    return CategoryConfig(cats, splits, combos, raw["default_combination"])
+
+
+@lru_cache(maxsize=4)
+def load_categories(path: str | None = None) -> CategoryConfig:
+    """Parse the category file once per process (``path`` overrides the shipped file)."""
+    return _parse(Path(path) if path else config_dir() / "categories.yaml")
