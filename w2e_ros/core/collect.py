@@ -1,0 +1,216 @@
+"""``w2e collect``: random interactions in the simulator, written as resumable shards.
+
+Work is cut into chunks of observations; chunk ``i`` always holds the same objects, start
+states and seeds whatever the number of workers, and is written as ``shard-i.npz`` only
+when complete. Re-running the same command skips the chunks already on disk, so an
+interrupted collection resumes where it stopped and the same seed gives the same data.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import multiprocessing as mp
+import os
+import time
+from collections import defaultdict
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from sim_bridge.types import Action
+from w2e_ros.core.actions import sample_forward, sample_up
+from w2e_ros.core.categories import load_categories
+from w2e_ros.core.data import InteractionData
+from w2e_ros.core.sim_world import SimWorld, Target, stable_seed
+
+log = logging.getLogger("w2e.collect")
+
+
+@dataclass
+class CollectConfig:
+    out: str
+    categories: list[str] | None = None  # None: all 14
+    split: str = "train"
+    observations: int = 20  # per category
+    interactions: int = 24  # per observation and primitive
+    primitives: tuple[str, ...] = ("push", "pull")
+    num_points: int = 2048
+    movable_fraction: float = 0.8
+    workers: int = 2
+    obs_per_shard: int = 8
+    seed: int = 0
+
+
+@dataclass
+class CollectSummary:
+    """Counts per (category, primitive) over the whole output directory."""
+
+    counts: dict[tuple[str, str], list[int]] = field(default_factory=dict)  # [n, valid, pos]
+    trials: int = 0
+    seconds: float = 0.0
+    new_trials: int = 0
+
+    def add(self, data: InteractionData) -> None:
+        cats = data.interaction_category
+        for c, p, v, s in zip(cats, data.primitive, data.valid, data.success, strict=True):
+            row = self.counts.setdefault((str(c), str(p)), [0, 0, 0])
+            row[0] += 1
+            row[1] += int(v)
+            row[2] += int(s)
+        self.trials += data.num_interactions
+
+    @property
+    def rate(self) -> float:
+        return self.new_trials / self.seconds if self.seconds > 0 else float("nan")
+
+    def table(self) -> str:
+        prims = sorted({p for _, p in self.counts})
+        head = "| category | " + " | ".join(f"{p} pos % (valid %, n)" for p in prims) + " |"
+        lines = [head, "|---" * (len(prims) + 1) + "|"]
+        for cat in sorted({c for c, _ in self.counts}):
+            cells = []
+            for p in prims:
+                n, v, s = self.counts.get((cat, p), [0, 0, 0])
+                cells.append(f"{100 * s / max(n, 1):.1f} ({100 * v / max(n, 1):.0f}, {n})")
+            lines.append(f"| {cat} | " + " | ".join(cells) + " |")
+        lines.append(f"\n{self.trials} interactions on disk; this run: {self.new_trials} trials "
+                     f"in {self.seconds:.1f} s = {self.rate:.1f} trials/s")
+        return "\n".join(lines)
+
+
+def plan_chunks(cfg: CollectConfig) -> list[list[tuple[str, int, int]]]:
+    """(category, instance, observation seed) per observation, cut into shard-sized chunks.
+
+    Categories are interleaved so that every shard, and any prefix of the collection, is
+    balanced across categories.
+    """
+    cats = load_categories()
+    names = cfg.categories or list(cats.categories)
+    for c in names:
+        cats.check_category(c)
+    per_cat = {}
+    for c in names:
+        inst = cats.instances(c, cfg.split)
+        rng = np.random.default_rng(stable_seed("order", cfg.seed, c, cfg.split))
+        order = rng.permutation(inst)
+        per_cat[c] = [(c, int(order[i % len(order)]), stable_seed("obs", cfg.seed, c, i))
+                      for i in range(cfg.observations)]
+    flat = [per_cat[c][i] for i in range(cfg.observations) for c in names]
+    return [flat[i: i + cfg.obs_per_shard] for i in range(0, len(flat), cfg.obs_per_shard)]
+
+
+_WORLD: SimWorld | None = None
+
+
+def _collect_observation(cfg: CollectConfig, category: str, instance: int,
+                         obs_seed: int) -> InteractionData:
+    global _WORLD
+    if _WORLD is None or _WORLD.num_points != cfg.num_points:
+        _WORLD = SimWorld(num_points=cfg.num_points)
+    target = Target(category, instance, obs_seed)
+    cloud = _WORLD.observe(target)
+    rng = np.random.default_rng(stable_seed("actions", obs_seed))
+    movable_idx = np.flatnonzero(cloud.movable)
+    rows: dict[str, list] = defaultdict(list)
+    for prim in cfg.primitives:
+        for _ in range(cfg.interactions):
+            on_movable = movable_idx.size and rng.random() < cfg.movable_fraction
+            pool = movable_idx if on_movable else np.arange(len(cloud.points))
+            pidx = int(rng.choice(pool))
+            up = sample_up(cloud.normals[pidx][None], rng)[0]
+            fwd = sample_forward(up[None], rng)[0]
+            trial_seed = int(rng.integers(0, 2**31 - 1))
+            action = Action(point=cloud.points[pidx].astype(np.float64), up=up.astype(np.float64),
+                            forward=fwd.astype(np.float64), primitive=prim)
+            try:
+                res = _WORLD.execute(target, action, seed=trial_seed)
+                valid, success, motion = res.valid, res.success, _target_motion(res)
+            except Exception as exc:  # an exploding trial is data (invalid), not a crash
+                log.warning("trial on %s failed: %s", target.name, exc)
+                valid, success, motion = False, False, 0.0
+            rows["point_index"].append(pidx)
+            rows["up"].append(up)
+            rows["forward"].append(fwd)
+            rows["primitive"].append(prim)
+            rows["motion"].append(motion)
+            rows["valid"].append(valid)
+            rows["success"].append(success)
+            rows["trial_seed"].append(trial_seed)
+    k = len(rows["point_index"])
+    return InteractionData(
+        points=cloud.points[None], normals=cloud.normals[None], movable=cloud.movable[None],
+        category=np.array([category]), instance=np.array([instance], np.int32),
+        state=cloud.state[None].astype(np.float32), obs_seed=np.array([obs_seed], np.int64),
+        camera_pose=cloud.camera_pose[None],
+        obs_index=np.zeros(k, np.int32), point_index=np.array(rows["point_index"], np.int32),
+        up=np.array(rows["up"], np.float32), forward=np.array(rows["forward"], np.float32),
+        primitive=np.array(rows["primitive"]), motion=np.array(rows["motion"], np.float32),
+        valid=np.array(rows["valid"], bool), success=np.array(rows["success"], bool),
+        trial_seed=np.array(rows["trial_seed"], np.int64),
+    )
+
+
+def _target_motion(res) -> float:
+    if res.moved_joint is None or res.moved_joint < 0 or len(res.motion) == 0:
+        return 0.0
+    return float(res.motion[res.moved_joint])
+
+
+def _run_chunk(job: tuple[CollectConfig, int, list[tuple[str, int, int]]]) -> tuple[int, str]:
+    cfg, index, chunk = job
+    parts = [_collect_observation(cfg, *obs) for obs in chunk]
+    data = InteractionData.concat(parts)
+    data.meta = {"collect": {k: v for k, v in asdict(cfg).items() if k != "out"},
+                 "chunk": index}
+    path = data.save_shard(Path(cfg.out) / f"shard-{index:05d}.npz")
+    return data.num_interactions, str(path)
+
+
+def collect(cfg: CollectConfig) -> CollectSummary:
+    """Run the collection (resuming), then summarise everything in the output directory."""
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    settings = {k: v for k, v in asdict(cfg).items() if k not in ("out", "workers")}
+    settings["primitives"] = list(cfg.primitives)
+    manifest = out / "collect.json"
+    if manifest.exists():
+        old = json.loads(manifest.read_text())
+        if old != settings:
+            raise ValueError(f"{out} was collected with other settings ({manifest}); "
+                             "use a new --out directory")
+    manifest.write_text(json.dumps(settings, indent=1))
+
+    chunks = plan_chunks(cfg)
+    todo = [(cfg, i, c) for i, c in enumerate(chunks)
+            if not (out / f"shard-{i:05d}.npz").exists()]
+    total_trials = sum(len(c) for _, _, c in todo) * cfg.interactions * len(cfg.primitives)
+    log.info("%d of %d shards to collect (%d trials) with %d workers", len(todo), len(chunks),
+             total_trials, cfg.workers)
+    summary = CollectSummary()
+    t0 = time.perf_counter()
+    with tqdm(total=total_trials, unit="trial", desc="collect", smoothing=0.1) as bar:
+        if cfg.workers <= 1:
+            for job in todo:
+                n, _ = _run_chunk(job)
+                bar.update(n)
+        elif todo:
+            ctx = mp.get_context("spawn")
+            with ctx.Pool(cfg.workers, initializer=_worker_init) as pool:
+                for n, _ in pool.imap_unordered(_run_chunk, todo):
+                    bar.update(n)
+                    summary.new_trials += n
+    summary.seconds = time.perf_counter() - t0
+    if cfg.workers <= 1:
+        summary.new_trials = total_trials
+    for shard in sorted(out.glob("shard-*.npz")):
+        if not shard.name.endswith(".tmp.npz"):
+            summary.add(InteractionData.load_shard(shard))
+    return summary
+
+
+def _worker_init() -> None:
+    # one thread per worker process: the workers already use every core
+    os.environ["OMP_NUM_THREADS"] = "1"

@@ -1,0 +1,43 @@
+"""Point cloud helpers shared by the collector, the offline world and the segmentation node."""
+
+from __future__ import annotations
+
+import fpsample
+import numpy as np
+
+
+def fps_indices(points: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
+    """Indices of ``n`` furthest-point samples of (P, 3) points (bucket FPS, ms not 100 ms).
+
+    Clouds with fewer than ``n`` points are padded by repeating points, so every stored cloud
+    has exactly ``n`` rows; deterministic for a given seed.
+    """
+    points = np.ascontiguousarray(points, dtype=np.float32)
+    p = len(points)
+    if p == 0:
+        raise ValueError("cannot sample an empty point cloud")
+    if p <= n:
+        rng = np.random.default_rng(seed)
+        extra = rng.integers(0, p, size=n - p)
+        return np.concatenate([np.arange(p), extra]).astype(np.int64)
+    start = int(np.random.default_rng(seed).integers(0, p))
+    height = 7 if p > 4096 else 5
+    idx = fpsample.bucket_fps_kdline_sampling(points, n, h=height, start_idx=start)
+    return np.asarray(idx, dtype=np.int64)
+
+
+def check_cloud(points: np.ndarray, normals: np.ndarray | None = None) -> None:
+    """Reject clouds the model cannot use, with a message that says why."""
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"point cloud must be (N, 3), got {points.shape}")
+    if len(points) < 16:
+        raise ValueError(f"point cloud has {len(points)} points; at least 16 are needed")
+    if not np.isfinite(points).all():
+        raise ValueError("point cloud contains NaN or infinite coordinates")
+    if normals is not None:
+        normals = np.asarray(normals)
+        if normals.shape != points.shape:
+            raise ValueError(f"normals {normals.shape} do not match points {points.shape}")
+        if not np.isfinite(normals).all():
+            raise ValueError("normals contain NaN or infinite values")

@@ -1,0 +1,91 @@
+"""The simulator as the exploration loop's world, for the offline commands.
+
+A target is an object instance in a start state; the ROS planner has its own world (the
+executor and bridge nodes) behind the same two calls, ``observe`` and ``execute``.
+"""
+
+from __future__ import annotations
+
+import zlib
+from dataclasses import dataclass
+
+import numpy as np
+
+from sim_bridge.types import Action, TrialResult
+from w2e_ros.core.categories import load_categories
+from w2e_ros.core.pointcloud import fps_indices
+
+
+@dataclass(frozen=True)
+class Target:
+    """One object to interact with: instance plus the seed of its start state and view."""
+
+    category: str
+    instance: int
+    state_seed: int = 0
+
+    @property
+    def name(self) -> str:
+        return f"{self.category}/{self.instance}/{self.state_seed}"
+
+
+@dataclass
+class Cloud:
+    """A downsampled observation of a target, as the model consumes it."""
+
+    points: np.ndarray  # (N, 3) float32
+    normals: np.ndarray  # (N, 3) float32
+    movable: np.ndarray  # (N,) bool (ground truth: collection and evaluation only)
+    state: np.ndarray  # (J,) joint positions of the start state
+    camera_pose: np.ndarray  # (4, 4)
+
+
+def stable_seed(*parts: object) -> int:
+    """A seed from names and numbers that is the same in every process and run."""
+    return zlib.crc32("/".join(str(p) for p in parts).encode()) & 0x7FFFFFFF
+
+
+class SimWorld:
+    """Targets -> SAPIEN ObjectWorlds (cached), observed and executed deterministically."""
+
+    def __init__(self, num_points: int = 2048, cache_size: int = 64) -> None:
+        self.num_points = num_points
+        self._worlds: dict[tuple[str, int], object] = {}
+        self._cache_size = cache_size
+
+    def world(self, category: str, instance: int):  # -> sim_bridge.world.ObjectWorld
+        from sim_bridge.objects import make_object
+        from sim_bridge.world import ObjectWorld
+
+        load_categories().check_category(category)
+        key = (category, int(instance))
+        if key not in self._worlds:
+            if len(self._worlds) >= self._cache_size:
+                self._worlds.pop(next(iter(self._worlds)))
+            self._worlds[key] = ObjectWorld(make_object(category, int(instance)))
+        return self._worlds[key]
+
+    def start_state(self, target: Target) -> np.ndarray:
+        rng = np.random.default_rng(stable_seed("state", target.name))
+        return self.world(target.category, target.instance).sample_start_state(rng)
+
+    def observe(self, target: Target, view: int = 0) -> Cloud:
+        """The camera cloud of the target in its start state, FPS-downsampled to N points."""
+        world = self.world(target.category, target.instance)
+        qpos = self.start_state(target)
+        obs = world.observe(qpos, rng=np.random.default_rng(stable_seed("view", target.name, view)))
+        if len(obs.points) == 0:
+            raise RuntimeError(f"the camera sees nothing of {target.name}")
+        idx = fps_indices(obs.points, self.num_points, seed=stable_seed("fps", target.name, view))
+        return Cloud(
+            points=obs.points[idx].astype(np.float32),
+            normals=obs.normals[idx].astype(np.float32),
+            movable=obs.movable[idx].astype(bool),
+            state=np.asarray(qpos, dtype=np.float32),
+            camera_pose=np.asarray(obs.camera_pose, dtype=np.float32),
+        )
+
+    def execute(self, target: Target, action: Action, seed: int = 0) -> TrialResult:
+        """Run one trial from the target's start state in a fresh scene."""
+        world = self.world(target.category, target.instance)
+        return world.run_trial(self.start_state(target), action, seed=seed)
