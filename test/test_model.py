@@ -1,0 +1,133 @@
+"""The encoder, the split heads and checkpoints: shapes, gradients, equivalences."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from w2e_ros.core.config import ModelConfig
+from w2e_ros.core.model import W2EModel, load_model, save_model
+from w2e_ros.core.pointnet2_geometry import (
+    farthest_point_sample,
+    query_ball_point,
+    square_distance,
+    three_interpolate,
+)
+
+torch.set_num_threads(2)
+SMALL = ModelConfig(num_points=256, sa_npoint=(64, 16, 8, 4))
+
+
+def _cloud(B: int, N: int, seed: int = 0) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return torch.rand(B, N, 3, generator=g) - 0.5
+
+
+def test_square_distance_matches_broadcast_formula():
+    a, b = _cloud(2, 50), _cloud(2, 70, seed=1)
+    ref = ((a[:, :, None] - b[:, None]) ** 2).sum(-1)
+    torch.testing.assert_close(square_distance(a, b), ref, atol=1e-5, rtol=1e-5)
+
+
+def test_fps_picks_spread_out_distinct_points():
+    xyz = _cloud(2, 500)
+    idx = farthest_point_sample(xyz, 32)
+    assert idx.shape == (2, 32)
+    for b in range(2):
+        assert len(set(idx[b].tolist())) == 32
+        chosen = xyz[b, idx[b]]
+        # far better spread than a random subset: min pairwise distance well above random
+        d = square_distance(chosen[None], chosen[None])[0] + torch.eye(32) * 10
+        rnd = xyz[b, :32]
+        dr = square_distance(rnd[None], rnd[None])[0] + torch.eye(32) * 10
+        assert d.min() > dr.min()
+
+
+def test_ball_query_keeps_neighbours_inside_radius():
+    xyz = _cloud(1, 400)
+    centres = xyz[:, :10]
+    idx = query_ball_point(0.2, 16, xyz, centres)
+    assert idx.shape == (1, 10, 16)
+    d = ((xyz[0, idx[0]] - centres[0, :, None]) ** 2).sum(-1)
+    assert (d <= 0.2**2 + 1e-6).all()
+
+
+def test_interpolation_reproduces_features_at_source_points():
+    xyz2 = _cloud(1, 20)
+    f2 = torch.randn(1, 20, 5)
+    out = three_interpolate(xyz2, xyz2, f2)
+    torch.testing.assert_close(out, f2, atol=1e-3, rtol=1e-3)
+
+
+def test_encoder_gives_per_point_features_and_gradients():
+    model = W2EModel(SMALL)
+    feats = model.encode(_cloud(2, 256))
+    assert feats.shape == (2, 256, SMALL.feat_dim)
+    feats.sum().backward()
+    grads = [p.grad for p in model.encoder.parameters()]
+    assert all(g is not None and torch.isfinite(g).all() for g in grads)
+    assert any(g.abs().sum() > 0 for g in grads)
+
+
+def test_encoder_is_invariant_to_translation():
+    model = W2EModel(SMALL).eval()
+    x = _cloud(1, 256)
+    with torch.no_grad():
+        torch.testing.assert_close(model.encode(x), model.encode(x + torch.tensor([3.0, -1, 2])),
+                                   atol=1e-4, rtol=1e-4)
+
+
+def test_split_head_map_equals_paired_queries():
+    model = W2EModel(SMALL).eval()
+    with torch.no_grad():
+        feats = model.encode(_cloud(2, 256))
+        actions = torch.randn(2, 256, 5, 6)
+        aff_map, sim_map = model.score_map(feats, actions)
+        assert aff_map.shape == sim_map.shape == (2, 256, 5)
+        f = feats.unsqueeze(2).expand(-1, -1, 5, -1)
+        aff, sim = model.heads(f, actions)
+        torch.testing.assert_close(aff_map, aff, atol=1e-5, rtol=1e-5)
+        torch.testing.assert_close(sim_map, sim, atol=1e-5, rtol=1e-5)
+        assert ((sim_map >= 0) & (sim_map <= 1)).all()
+        # the same K actions for every point
+        shared = torch.randn(5, 6)
+        a1, _ = model.score_map(feats, shared)
+        a2, _ = model.score_map(feats, shared.expand(2, 256, 5, 6))
+        torch.testing.assert_close(a1, a2)
+
+
+def test_forward_reads_features_at_each_interactions_point():
+    model = W2EModel(SMALL).eval()
+    clouds = _cloud(2, 256)
+    cloud_of = torch.tensor([0, 1, 1])
+    point_index = torch.tensor([5, 7, 200])
+    actions = torch.randn(3, 6)
+    with torch.no_grad():
+        aff, sim = model(clouds, cloud_of, point_index, actions)
+        feats = model.encode(clouds)
+        ref, _ = model.heads(feats[1, 200], actions[2])
+    assert aff.shape == sim.shape == (3,)
+    torch.testing.assert_close(aff[2], ref)
+
+
+def test_checkpoint_round_trip(tmp_path):
+    model = W2EModel(SMALL).eval()
+    path = save_model(tmp_path / "m.pt", model, {"primitive": "pull"})
+    assert path.stat().st_size < 8e6
+    loaded, meta = load_model(path, "cpu")
+    assert meta["primitive"] == "pull" and loaded.cfg == SMALL
+    x = _cloud(1, 256)
+    with torch.no_grad():
+        torch.testing.assert_close(model.encode(x), loaded.encode(x))
+
+
+def test_missing_checkpoint_says_how_to_make_one(tmp_path):
+    with pytest.raises(FileNotFoundError, match="w2e train"):
+        load_model(tmp_path / "none.pt")
+
+
+def test_default_sizes_follow_the_paper():
+    cfg = ModelConfig()
+    assert cfg.feat_dim == 128 and cfg.head_hidden == 128 and cfg.action_dim == 6
+    assert np.allclose(cfg.sa_radius, (0.1, 0.2, 0.4, 0.8))

@@ -1,0 +1,95 @@
+"""One place for the sizes of the model, the training and the few-shot exploration.
+
+Every module of the learning core reads its numbers from these dataclasses; checkpoints store
+the model config so a saved model rebuilds itself without guessing.
+
+Encoder sizes vs the reference (Where2Act's PointNet++ SSG segmentation network on 10,000
+points: SA centroids 1024/256/64/16, radii 0.1/0.2/0.4/0.8, 32 neighbours): our objects have
+the same scale (~1 unit) so the radii stay; our clouds have N=2048 points, so 1024 first-level
+centroids would keep half the cloud and cost the most of every forward pass while adding
+little information. We keep the reference's ratio between levels (4x) but start at 512
+centroids: 512/128/32/8. A 0.1 ball then holds ~30-60 of the 2048 points on a ~1-unit object,
+so 32 neighbours still cover it. The trade-off: handles thinner than the first-level spacing
+(~0.04 units) are represented by fewer centroids, and the per-point features are interpolated
+from 512 instead of 1024 centroids. ``bench/bench_model.py`` times both.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """PointNet++ SSG encoder and the two heads (DESIGN §1)."""
+
+    num_points: int = 2048
+    sa_npoint: tuple[int, ...] = (512, 128, 32, 8)
+    sa_radius: tuple[float, ...] = (0.1, 0.2, 0.4, 0.8)
+    sa_nsample: tuple[int, ...] = (32, 32, 32, 32)
+    sa_mlp: tuple[tuple[int, ...], ...] = ((32, 32, 64), (64, 64, 128), (128, 128, 256),
+                                           (256, 256, 512))
+    # FP layers from the deepest level back to the input points (reference sizes)
+    fp_mlp: tuple[tuple[int, ...], ...] = ((256, 256), (256, 256), (256, 128), (128, 128, 128))
+    feat_dim: int = 128  # per-point feature
+    action_dim: int = 6  # [up, forward]
+    head_hidden: int = 128  # one hidden layer per head (paper §3.4)
+    leaky_slope: float = 0.01
+
+    @staticmethod
+    def from_dict(d: dict) -> ModelConfig:
+        d = dict(d)
+        for k in ("sa_npoint", "sa_radius", "sa_nsample"):
+            if k in d:
+                d[k] = tuple(d[k])
+        for k in ("sa_mlp", "fp_mlp"):
+            if k in d:
+                d[k] = tuple(tuple(x) for x in d[k])
+        return ModelConfig(**d)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+METHODS = ("w2e", "where2act", "fulldata")
+"""Trained model kinds: ours (C_aff / C_sim split), Where2Act (affordance on the three
+training categories), Full-data (affordance on all 14 categories)."""
+
+
+@dataclass
+class TrainConfig:
+    """Training of one model (one primitive, one method, one combination)."""
+
+    method: str = "w2e"
+    combo: str = "cfw"
+    primitive: str = "push"
+    steps: int = 2000
+    clouds_per_batch: int = 4  # encoder passes per step (DESIGN §6: the expensive part)
+    interactions_per_cloud: int = 16  # head queries per cloud, half positive, half negative
+    lr: float = 1e-3
+    weight_decay: float = 0.0
+    sim_weight: float = 1.0  # weight of the L1 similarity loss
+    sim_grad_to_encoder: bool = True  # the similarity loss also shapes the shared encoder
+    include_invalid: bool = True  # invalid trials are negatives (they move nothing)
+    seed: int = 0
+    log_every: int = 20
+    ckpt_every: int = 200
+    threads: int = 2
+
+
+@dataclass
+class ExploreConfig:
+    """Few-shot exploration (paper §3.3 and supplementary)."""
+
+    budget: int = 5  # interactions in total
+    sim_bar: float = 0.9  # stop when the mean similarity exceeds it
+    points_per_object: int = 256  # candidate contact points per object and step
+    dirs_per_point: int = 8  # candidate (direction, orientation) per point
+    finetune_steps: int = 8  # gradient steps after each interaction
+    finetune_lr: float = 1e-3
+    replay_fraction: float = 0.01  # share of the training interactions replayed
+    replay_clouds: int = 2  # replay observations per fine-tune step
+    replay_per_cloud: int = 8
+    snapshot_budgets: tuple[int, ...] = field(default=(1, 2, 5))
+    movable_only: bool = False  # candidates only on movable points (needs ground truth)
+    seed: int = 0

@@ -1,0 +1,123 @@
+"""The Where2Explore network: one shared PointNet++ encoder, an affordance and a similarity head.
+
+Built so that many queries cost little (DESIGN §6): ``encode`` runs once per cloud, and each
+head's first layer is split into a per-point part (point feature) and a per-action part
+(6-D rotation) that are added, which equals one linear layer on their concatenation. A map of
+all N points x K actions then costs one (N, hidden) and one (K, hidden) product plus an add,
+instead of N*K rows of a (128 + 6)-wide product. One model per primitive.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from w2e_ros.core.config import ModelConfig
+from w2e_ros.core.pointnet2 import PointNet2Encoder
+
+CHECKPOINT_VERSION = 1
+
+
+def default_device() -> torch.device:
+    """CUDA when present (the GPU machine), else the CPU."""
+    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+
+
+class ActionHead(nn.Module):
+    """MLP with one hidden layer on [point feature, action]: logit per (point, action)."""
+
+    def __init__(self, feat_dim: int, action_dim: int, hidden: int, slope: float) -> None:
+        super().__init__()
+        self.point_fc = nn.Linear(feat_dim, hidden)  # per-point part (carries the bias)
+        self.action_fc = nn.Linear(action_dim, hidden, bias=False)  # per-action part
+        self.out = nn.Linear(hidden, 1)
+        self.slope = slope
+
+    def forward(self, feats: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """Paired queries: feats (..., F), actions (..., 6) -> logits (...)."""
+        h = F.leaky_relu(self.point_fc(feats) + self.action_fc(actions), self.slope)
+        return self.out(h).squeeze(-1)
+
+    def map(self, feats: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """Every point x its K actions: feats (B, N, F), actions (B, N, K, 6) -> (B, N, K).
+
+        ``actions`` may also be (K, 6), the same K actions for every point.
+        """
+        hp = self.point_fc(feats).unsqueeze(2)  # (B, N, 1, H)
+        ha = self.action_fc(actions)  # (B, N, K, H) or (K, H)
+        h = F.leaky_relu(hp + ha, self.slope)
+        return self.out(h).squeeze(-1)
+
+
+class W2EModel(nn.Module):
+    """Shared encoder + affordance head (logit) + similarity head (probability in [0, 1])."""
+
+    def __init__(self, cfg: ModelConfig | None = None) -> None:
+        super().__init__()
+        self.cfg = cfg or ModelConfig()
+        c = self.cfg
+        self.encoder = PointNet2Encoder(c)
+        self.aff_head = ActionHead(c.feat_dim, c.action_dim, c.head_hidden, c.leaky_slope)
+        self.sim_head = ActionHead(c.feat_dim, c.action_dim, c.head_hidden, c.leaky_slope)
+
+    @property
+    def device(self) -> torch.device:
+        return next(self.parameters()).device
+
+    def encode(self, clouds: torch.Tensor) -> torch.Tensor:
+        """(B, N, 3) -> (B, N, feat_dim).
+
+        Each cloud is shifted so its bounding-box centre is the origin: the features then do
+        not depend on where the object stands (a table top, the sim origin); directions are
+        unchanged by a shift.
+        """
+        centre = 0.5 * (clouds.amax(dim=1, keepdim=True) + clouds.amin(dim=1, keepdim=True))
+        return self.encoder(clouds - centre)
+
+    def heads(self, feats: torch.Tensor,
+              actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Paired queries (..., F), (..., 6) -> affordance logits, similarity in [0, 1]."""
+        return self.aff_head(feats, actions), torch.sigmoid(self.sim_head(feats, actions))
+
+    def score_map(self, feats: torch.Tensor,
+                  actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """All points x K actions: (B, N, F), (B, N, K, 6) -> two (B, N, K) maps."""
+        return self.aff_head.map(feats, actions), torch.sigmoid(self.sim_head.map(feats, actions))
+
+    def forward(self, clouds: torch.Tensor, cloud_of: torch.Tensor, point_index: torch.Tensor,
+                actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Interactions grouped by cloud: clouds (B, N, 3); per interaction (K,) cloud row,
+        (K,) point row, (K, 6) action -> affordance logits (K,), similarity (K,)."""
+        feats = self.encode(clouds)
+        return self.heads(feats[cloud_of, point_index], actions)
+
+
+def save_model(path: str | Path, model: W2EModel, meta: dict | None = None) -> Path:
+    """Weights + model config + free-form metadata (method, combo, primitive, step)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save({"version": CHECKPOINT_VERSION, "model_cfg": model.cfg.to_dict(),
+                "state_dict": state, "meta": dict(meta or {})}, tmp)
+    tmp.replace(path)
+    return path
+
+
+def load_model(path: str | Path, device: torch.device | str | None = None
+               ) -> tuple[W2EModel, dict]:
+    """Rebuild a model from a checkpoint written by ``save_model`` (or a trainer state)."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"no checkpoint at {path}: run `w2e train` first")
+    ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    if ckpt.get("version") != CHECKPOINT_VERSION:
+        raise ValueError(f"{path}: checkpoint version {ckpt.get('version')} is not "
+                         f"{CHECKPOINT_VERSION}")
+    model = W2EModel(ModelConfig.from_dict(ckpt["model_cfg"]))
+    model.load_state_dict(ckpt["state_dict"])
+    model.to(device or default_device()).eval()
+    return model, dict(ckpt.get("meta", {}))

@@ -1,0 +1,105 @@
+"""PointNet++ SSG segmentation encoder: per-point features for a partial point cloud.
+
+Layers as small modules over the plain functions of ``pointnet2_geometry``; sizes come from
+``ModelConfig``. ReLUs are not in-place (in-place slowed backward by ~30 %, DESIGN §6).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from w2e_ros.core.config import ModelConfig
+from w2e_ros.core.pointnet2_geometry import (
+    sample_and_group,
+    sample_and_group_all,
+    three_interpolate,
+)
+
+
+def _mlp2d(c_in: int, widths: tuple[int, ...]) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for c in widths:
+        layers += [nn.Conv2d(c_in, c, 1, bias=False), nn.BatchNorm2d(c), nn.ReLU()]
+        c_in = c
+    return nn.Sequential(*layers)
+
+
+def _mlp1d(c_in: int, widths: tuple[int, ...]) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for c in widths:
+        layers += [nn.Conv1d(c_in, c, 1, bias=False), nn.BatchNorm1d(c), nn.ReLU()]
+        c_in = c
+    return nn.Sequential(*layers)
+
+
+class SetAbstraction(nn.Module):
+    """Sample centroids, group neighbours, shared MLP, max-pool over each neighbourhood."""
+
+    def __init__(self, npoint: int | None, radius: float, nsample: int, c_in: int,
+                 mlp: tuple[int, ...]) -> None:
+        super().__init__()
+        self.npoint, self.radius, self.nsample = npoint, radius, nsample
+        self.mlp = _mlp2d(c_in + 3, mlp)
+
+    def forward(self, xyz: torch.Tensor,
+                feats: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """xyz (B, N, 3), feats (B, N, C) -> new_xyz (B, S, 3), new_feats (B, S, C')."""
+        if self.npoint is None:
+            new_xyz, grouped = sample_and_group_all(xyz, feats)
+        else:
+            new_xyz, grouped = sample_and_group(self.npoint, self.radius, self.nsample, xyz,
+                                                feats)
+        x = self.mlp(grouped.permute(0, 3, 1, 2))  # (B, C', S, K)
+        return new_xyz, x.amax(dim=-1).transpose(1, 2)
+
+
+class FeaturePropagation(nn.Module):
+    """Interpolate coarse features onto finer points, concatenate skip features, MLP."""
+
+    def __init__(self, c_in: int, mlp: tuple[int, ...]) -> None:
+        super().__init__()
+        self.mlp = _mlp1d(c_in, mlp)
+
+    def forward(self, xyz1: torch.Tensor, xyz2: torch.Tensor, feats1: torch.Tensor | None,
+                feats2: torch.Tensor) -> torch.Tensor:
+        """fine (B, N, 3) [+ (B, N, C1)], coarse (B, S, 3) + (B, S, C2) -> (B, N, C')."""
+        x = three_interpolate(xyz1, xyz2, feats2)  # (B, N, C2)
+        if feats1 is not None:
+            x = torch.cat([x, feats1], dim=-1)
+        return self.mlp(x.transpose(1, 2)).transpose(1, 2)
+
+
+class PointNet2Encoder(nn.Module):
+    """(B, N, 3) cloud -> (B, N, feat_dim) per-point features."""
+
+    def __init__(self, cfg: ModelConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        sa, c = [], 0
+        for npoint, radius, nsample, mlp in zip(cfg.sa_npoint, cfg.sa_radius, cfg.sa_nsample,
+                                                cfg.sa_mlp, strict=True):
+            sa.append(SetAbstraction(npoint, radius, nsample, c, mlp))
+            c = mlp[-1]
+        self.sa = nn.ModuleList(sa)
+        # skip widths from the deepest level back to the input (which has none)
+        skips = [m[-1] for m in cfg.sa_mlp[:-1]][::-1] + [0]
+        fp, c = [], cfg.sa_mlp[-1][-1]
+        for skip, mlp in zip(skips, cfg.fp_mlp, strict=True):
+            fp.append(FeaturePropagation(c + skip, mlp))
+            c = mlp[-1]
+        self.fp = nn.ModuleList(fp)
+        self.out = _mlp1d(c, (cfg.feat_dim,))
+
+    def forward(self, xyz: torch.Tensor) -> torch.Tensor:
+        xyzs: list[torch.Tensor] = [xyz]
+        feats: list[torch.Tensor | None] = [None]
+        for layer in self.sa:
+            new_xyz, new_feats = layer(xyzs[-1], feats[-1])
+            xyzs.append(new_xyz)
+            feats.append(new_feats)
+        x = feats[-1]
+        for i, layer in enumerate(self.fp):
+            fine = len(self.sa) - 1 - i  # level receiving the features
+            x = layer(xyzs[fine], xyzs[fine + 1], feats[fine], x)
+        return self.out(x.transpose(1, 2)).transpose(1, 2)  # (B, N, feat_dim)
