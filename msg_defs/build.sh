@@ -1,0 +1,76 @@
+#!/usr/bin/env bash
+# Build the w2e_msgs interface package (this folder) with rosidl + plain CMake into a Python
+# virtual environment that holds the ROS 2 Jazzy wheels, so `import w2e_msgs.msg` works there.
+#
+#   bash msg_defs/build.sh [VENV]        (default: .venv next to msg_defs/)
+#
+# Why not colcon: colcon and ros2cli are not on the package index. Why the patching: the
+# wheels' exported CMake files name the wheel build host's Python include directories
+# (/opt/python/cp311-cp311/...), which do not exist here (DESIGN §7). Re-running is cheap:
+# the patch is skipped once applied and CMake/ninja rebuild only what changed.
+set -euo pipefail
+
+HERE="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
+ROOT="$(dirname "$HERE")"
+VENV="${1:-$ROOT/.venv}"
+VENV="$(cd "$VENV" && pwd)"
+PY="$VENV/bin/python"
+BUILD="${W2E_MSGS_BUILD_DIR:-$ROOT/build/w2e_msgs}"
+
+for tool in cmake ninja g++; do
+  command -v "$tool" >/dev/null || { echo "[w2e_msgs] missing '$tool' (apt: cmake ninja-build g++)" >&2; exit 1; }
+done
+[ -x "$PY" ] || { echo "[w2e_msgs] no python at $PY" >&2; exit 1; }
+[ -f "$VENV/share/rosidl_default_generators/cmake/rosidl_default_generatorsConfig.cmake" ] || {
+  echo "[w2e_msgs] rosidl_default_generators is not installed in $VENV (pip install -r requirements.txt)" >&2
+  exit 1
+}
+
+# --- 1. Python modules the CMake side needs but no wheel declares -------------------------
+if ! _ROS_WHEELS_BOOTSTRAP_COMPLETE=1 "$PY" -c 'import catkin_pkg, em, lark' 2>/dev/null; then
+  echo "[w2e_msgs] installing catkin_pkg, empy, lark (read by ament_cmake / rosidl at build time)"
+  "$PY" -m pip install -q catkin_pkg "empy>=4,<5" lark
+fi
+
+# --- 2. point the wheels' exported CMake files at this machine's Python and numpy ----------
+read -r PY_INC NP_INC < <(_ROS_WHEELS_BOOTSTRAP_COMPLETE=1 "$PY" -c \
+  'import sysconfig, numpy; print(sysconfig.get_paths()["include"], numpy.get_include())')
+HOST_PY=/opt/python/cp311-cp311
+mapfile -t stale < <(grep -rlF --include='*.cmake' "$HOST_PY" "$VENV/share" "$VENV/lib/cmake" 2>/dev/null || true)
+if [ "${#stale[@]}" -gt 0 ]; then
+  echo "[w2e_msgs] patching ${#stale[@]} CMake files: $HOST_PY -> $PY_INC, $NP_INC"
+  # the numpy path first: it contains the generic prefix
+  sed -i -e "s#$HOST_PY/lib/python3.11/site-packages/numpy/_core/include#$NP_INC#g" \
+         -e "s#$HOST_PY/include/python3.11#$PY_INC#g" "${stale[@]}"
+  left=$(grep -rlF --include='*.cmake' "$HOST_PY" "$VENV/share" 2>/dev/null | wc -l || true)
+  [ "$left" = 0 ] || echo "[w2e_msgs] warning: $left CMake files still name $HOST_PY" >&2
+fi
+
+# --- 3. configure (once) and build + install into the venv prefix ------------------------
+export AMENT_PREFIX_PATH="$VENV${AMENT_PREFIX_PATH:+:$AMENT_PREFIX_PATH}"
+export CMAKE_PREFIX_PATH="$VENV${CMAKE_PREFIX_PATH:+:$CMAKE_PREFIX_PATH}"
+export LD_LIBRARY_PATH="$VENV/lib${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
+export PATH="$VENV/bin:$PATH"
+# the generators run under the venv's Python; skip the wheels' re-exec bootstrap there
+export _ROS_WHEELS_BOOTSTRAP_COMPLETE=1
+
+mkdir -p "$(dirname "$BUILD")"
+start=$(date +%s)
+if [ ! -f "$BUILD/build.ninja" ]; then
+  cmake -S "$HERE" -B "$BUILD" -G Ninja \
+    -DCMAKE_BUILD_TYPE=Release \
+    -DCMAKE_INSTALL_PREFIX="$VENV" \
+    -DPython3_EXECUTABLE="$PY" \
+    -DPython3_FIND_VIRTUALENV=ONLY \
+    -DBUILD_TESTING=OFF \
+    -Wno-dev >"$BUILD.configure.log" 2>&1 || {
+      mkdir -p "$BUILD"; tail -40 "$BUILD.configure.log" >&2; exit 1; }
+fi
+cmake --build "$BUILD" --target install -- -j"${W2E_BUILD_JOBS:-2}" >"$BUILD.build.log" 2>&1 || {
+  tail -60 "$BUILD.build.log" >&2; exit 1; }
+
+# --- 4. check from the venv's Python (through its normal start-up) -----------------------
+unset _ROS_WHEELS_BOOTSTRAP_COMPLETE
+"$PY" -c 'import w2e_msgs.msg, w2e_msgs.srv, w2e_msgs.action; w2e_msgs.action.ExecuteInteraction.Goal()' || {
+  echo "[w2e_msgs] built, but 'import w2e_msgs' fails in $PY" >&2; exit 1; }
+echo "[w2e_msgs] installed into $VENV in $(( $(date +%s) - start )) s"
