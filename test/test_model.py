@@ -78,6 +78,13 @@ def test_encoder_is_invariant_to_translation():
                                    atol=1e-4, rtol=1e-4)
 
 
+def test_a_clouds_features_do_not_depend_on_the_rest_of_the_batch():
+    # GroupNorm, not BatchNorm: C_sim clouds cannot leak into C_aff clouds' features
+    model = W2EModel(SMALL).train()
+    x = _cloud(3, 256)
+    torch.testing.assert_close(model.encode(x)[:1], model.encode(x[:1]), atol=1e-4, rtol=1e-4)
+
+
 def test_split_head_map_equals_paired_queries():
     model = W2EModel(SMALL).eval()
     with torch.no_grad():

@@ -51,7 +51,61 @@ def _run_collect(a: argparse.Namespace) -> int:
     return 0
 
 
-VERBS: list[Callable[[argparse._SubParsersAction], None]] = [_add_collect]
+def _add_train(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "train", help="train the affordance + similarity model (or a baseline) on collected data",
+        description="Train one model per primitive. w2e: C_aff trains the affordance head, "
+                    "C_sim the similarity head; where2act: affordance on the three training "
+                    "categories; fulldata: affordance on all 14 categories.")
+    p.add_argument("--data", required=True, help="collection directory (w2e collect --out)")
+    p.add_argument("--out", default=None,
+                   help="run directory (default runs/<method>_<combo>_<primitive>)")
+    p.add_argument("--method", default="w2e", choices=["w2e", "where2act", "fulldata"])
+    p.add_argument("--combo", default="cfw", choices=["cfw", "csr", "tfr", "tsw"])
+    p.add_argument("--primitive", default="push", choices=["push", "pull"])
+    p.add_argument("--steps", type=int, default=None, help="optimizer steps (default 2000)")
+    p.add_argument("--epochs", type=float, default=None,
+                   help="alternative to --steps: passes over the training interactions")
+    p.add_argument("--clouds", type=int, default=4, help="clouds (encoder passes) per batch")
+    p.add_argument("--per-cloud", type=int, default=16, help="interactions per cloud")
+    p.add_argument("--lr", type=float, default=1e-3)
+    p.add_argument("--val-data", default=None,
+                   help="collection to report the affordance F-score on at checkpoints")
+    p.add_argument("--resume", action="store_true", help="continue the run in --out")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    p.add_argument("--log-every", type=int, default=20)
+    p.add_argument("--ckpt-every", type=int, default=200)
+    p.add_argument("--no-progress", action="store_true", help="log lines instead of a bar")
+    p.set_defaults(func=_run_train)
+
+
+def _run_train(a: argparse.Namespace) -> int:
+    import math
+
+    from w2e_ros.core.config import TrainConfig
+    from w2e_ros.core.data import InteractionData
+    from w2e_ros.core.train import load_training_data, run_name, train
+
+    cfg = TrainConfig(method=a.method, combo=a.combo, primitive=a.primitive, lr=a.lr,
+                      clouds_per_batch=a.clouds, interactions_per_cloud=a.per_cloud,
+                      seed=a.seed, threads=a.threads, log_every=a.log_every,
+                      ckpt_every=a.ckpt_every)
+    if a.steps is not None:
+        cfg.steps = a.steps
+    elif a.epochs is not None:
+        n = load_training_data(a.data, a.method, a.combo, a.primitive).num_interactions
+        cfg.steps = max(1, math.ceil(a.epochs * n / (a.clouds * a.per_cloud)))
+    out = a.out or f"runs/{run_name(a.method, a.combo, a.primitive)}"
+    val = None
+    if a.val_data:
+        val = InteractionData.load(a.val_data).select(primitive=a.primitive)
+    path = train(cfg, a.data, out, resume=a.resume, val_data=val, progress=not a.no_progress)
+    print(f"model: {path}")
+    return 0
+
+
+VERBS: list[Callable[[argparse._SubParsersAction], None]] = [_add_collect, _add_train]
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -35,6 +35,8 @@ class ModelConfig:
     action_dim: int = 6  # [up, forward]
     head_hidden: int = 128  # one hidden layer per head (paper §3.4)
     leaky_slope: float = 0.01
+    norm: str = "group"  # group | batch (see pointnet2._norm for why group)
+    norm_groups: int = 8
 
     @staticmethod
     def from_dict(d: dict) -> ModelConfig:

@@ -17,18 +17,24 @@ from w2e_ros.core.pointnet2_geometry import (
 )
 
 
-def _mlp2d(c_in: int, widths: tuple[int, ...]) -> nn.Sequential:
-    layers: list[nn.Module] = []
-    for c in widths:
-        layers += [nn.Conv2d(c_in, c, 1, bias=False), nn.BatchNorm2d(c), nn.ReLU()]
-        c_in = c
-    return nn.Sequential(*layers)
+def _norm(kind: str, c: int, groups: int, dims: int) -> nn.Module:
+    """GroupNorm keeps every cloud's features independent of the other clouds in a batch:
+    no train / eval gap on 1-cloud fine-tuning batches, and no path by which the batch
+    statistics of C_sim clouds reach the affordance loss of C_aff clouds. BatchNorm is the
+    reference's choice, kept as an option."""
+    if kind == "group":
+        return nn.GroupNorm(min(groups, c), c)
+    if kind == "batch":
+        return nn.BatchNorm2d(c) if dims == 2 else nn.BatchNorm1d(c)
+    raise ValueError(f"unknown norm {kind!r} (group | batch)")
 
 
-def _mlp1d(c_in: int, widths: tuple[int, ...]) -> nn.Sequential:
+def _mlp(c_in: int, widths: tuple[int, ...], cfg: ModelConfig, dims: int) -> nn.Sequential:
+    conv = nn.Conv2d if dims == 2 else nn.Conv1d
     layers: list[nn.Module] = []
     for c in widths:
-        layers += [nn.Conv1d(c_in, c, 1, bias=False), nn.BatchNorm1d(c), nn.ReLU()]
+        layers += [conv(c_in, c, 1, bias=False), _norm(cfg.norm, c, cfg.norm_groups, dims),
+                   nn.ReLU()]
         c_in = c
     return nn.Sequential(*layers)
 
@@ -37,10 +43,10 @@ class SetAbstraction(nn.Module):
     """Sample centroids, group neighbours, shared MLP, max-pool over each neighbourhood."""
 
     def __init__(self, npoint: int | None, radius: float, nsample: int, c_in: int,
-                 mlp: tuple[int, ...]) -> None:
+                 mlp: tuple[int, ...], cfg: ModelConfig) -> None:
         super().__init__()
         self.npoint, self.radius, self.nsample = npoint, radius, nsample
-        self.mlp = _mlp2d(c_in + 3, mlp)
+        self.mlp = _mlp(c_in + 3, mlp, cfg, dims=2)
 
     def forward(self, xyz: torch.Tensor,
                 feats: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -57,9 +63,9 @@ class SetAbstraction(nn.Module):
 class FeaturePropagation(nn.Module):
     """Interpolate coarse features onto finer points, concatenate skip features, MLP."""
 
-    def __init__(self, c_in: int, mlp: tuple[int, ...]) -> None:
+    def __init__(self, c_in: int, mlp: tuple[int, ...], cfg: ModelConfig) -> None:
         super().__init__()
-        self.mlp = _mlp1d(c_in, mlp)
+        self.mlp = _mlp(c_in, mlp, cfg, dims=1)
 
     def forward(self, xyz1: torch.Tensor, xyz2: torch.Tensor, feats1: torch.Tensor | None,
                 feats2: torch.Tensor) -> torch.Tensor:
@@ -79,17 +85,17 @@ class PointNet2Encoder(nn.Module):
         sa, c = [], 0
         for npoint, radius, nsample, mlp in zip(cfg.sa_npoint, cfg.sa_radius, cfg.sa_nsample,
                                                 cfg.sa_mlp, strict=True):
-            sa.append(SetAbstraction(npoint, radius, nsample, c, mlp))
+            sa.append(SetAbstraction(npoint, radius, nsample, c, mlp, cfg))
             c = mlp[-1]
         self.sa = nn.ModuleList(sa)
         # skip widths from the deepest level back to the input (which has none)
         skips = [m[-1] for m in cfg.sa_mlp[:-1]][::-1] + [0]
         fp, c = [], cfg.sa_mlp[-1][-1]
         for skip, mlp in zip(skips, cfg.fp_mlp, strict=True):
-            fp.append(FeaturePropagation(c + skip, mlp))
+            fp.append(FeaturePropagation(c + skip, mlp, cfg))
             c = mlp[-1]
         self.fp = nn.ModuleList(fp)
-        self.out = _mlp1d(c, (cfg.feat_dim,))
+        self.out = _mlp(c, (cfg.feat_dim,), cfg, dims=1)
 
     def forward(self, xyz: torch.Tensor) -> torch.Tensor:
         xyzs: list[torch.Tensor] = [xyz]

@@ -1,0 +1,364 @@
+"""``w2e train``: the affordance and similarity heads trained together (paper §3.2, §3.4).
+
+Where2Explore splits the three training categories: ``C_aff`` (the first) trains the
+affordance head with BCE; ``C_sim`` (all three) trains the similarity head with L1 against the
+affordance head's running accuracy on each interaction (correct / total predictions made on
+that interaction so far, the current one included). Interactions on the other ``C_sim``
+categories never reach the affordance head or send it gradient through the encoder: their
+affordance prediction is made without gradient and is only counted.
+
+Batches are a few clouds x many interactions (grouped by observation, DESIGN §6), with
+categories sampled equally and positives / negatives balanced within each cloud.
+Baselines: ``where2act`` (affordance only, all three training categories) and ``fulldata``
+(affordance only, all 14 categories).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from tqdm import tqdm
+
+from w2e_ros.core.actions import encode_rotation
+from w2e_ros.core.categories import load_categories
+from w2e_ros.core.config import METHODS, ModelConfig, TrainConfig
+from w2e_ros.core.data import InteractionData
+from w2e_ros.core.model import W2EModel, default_device, load_model, save_model
+
+log = logging.getLogger("w2e.train")
+
+
+def method_categories(method: str, combo: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """(categories training the affordance head, categories training the similarity head)."""
+    cats = load_categories()
+    members = cats.combination(combo)
+    if method == "w2e":
+        return (members[0],), tuple(members)
+    if method == "where2act":
+        return tuple(members), ()
+    if method == "fulldata":
+        return tuple(cats.categories), ()
+    raise ValueError(f"unknown method {method!r}; known: {', '.join(METHODS)}")
+
+
+@dataclass
+class Batch:
+    """Interactions grouped by cloud, as tensors on the model's device."""
+
+    clouds: torch.Tensor  # (B, N, 3)
+    cloud_of: torch.Tensor  # (K,) long, row in clouds
+    point_index: torch.Tensor  # (K,) long
+    actions: torch.Tensor  # (K, 6)
+    success: torch.Tensor  # (K,) float 0/1
+    interaction: np.ndarray  # (K,) int, key of the running-accuracy counters (-1: none)
+    aff_mask: torch.Tensor  # (K,) bool, trains the affordance head
+    sim_mask: torch.Tensor  # (K,) bool, trains the similarity head
+
+    @staticmethod
+    def cat(parts: list[Batch]) -> Batch:
+        offsets = np.cumsum([0] + [len(p.clouds) for p in parts[:-1]])
+        return Batch(
+            clouds=torch.cat([p.clouds for p in parts]),
+            cloud_of=torch.cat([p.cloud_of + int(o) for p, o in zip(parts, offsets,
+                                                                    strict=True)]),
+            point_index=torch.cat([p.point_index for p in parts]),
+            actions=torch.cat([p.actions for p in parts]),
+            success=torch.cat([p.success for p in parts]),
+            interaction=np.concatenate([p.interaction for p in parts]),
+            aff_mask=torch.cat([p.aff_mask for p in parts]),
+            sim_mask=torch.cat([p.sim_mask for p in parts]),
+        )
+
+
+def make_batch(data: InteractionData, rows: np.ndarray, aff_categories: tuple[str, ...],
+               sim_categories: tuple[str, ...], device: torch.device,
+               key_offset: int = 0) -> Batch:
+    """Interactions ``rows`` of ``data`` -> a Batch holding each of their clouds once."""
+    rows = np.asarray(rows, dtype=np.int64)
+    obs, cloud_of = np.unique(data.obs_index[rows], return_inverse=True)
+    cats = data.category[data.obs_index[rows]]
+    actions = encode_rotation(data.up[rows], data.forward[rows])
+    t = lambda a, dt=torch.float32: torch.as_tensor(np.asarray(a), dtype=dt, device=device)  # noqa: E731
+    return Batch(
+        clouds=t(data.points[obs]),
+        cloud_of=t(cloud_of.reshape(-1), torch.long),
+        point_index=t(data.point_index[rows], torch.long),
+        actions=t(actions),
+        success=t(data.success[rows].astype(np.float32)),
+        interaction=rows + key_offset,
+        aff_mask=t(np.isin(cats, list(aff_categories)), torch.bool),
+        sim_mask=t(np.isin(cats, list(sim_categories)), torch.bool),
+    )
+
+
+class RunningAccuracy:
+    """Per-interaction counters of the affordance head's correct / total predictions."""
+
+    def __init__(self, size: int = 0) -> None:
+        self.correct = np.zeros(size, dtype=np.int64)
+        self.total = np.zeros(size, dtype=np.int64)
+
+    def _grow(self, size: int) -> None:
+        if size > len(self.total):
+            pad = size - len(self.total)
+            self.correct = np.concatenate([self.correct, np.zeros(pad, np.int64)])
+            self.total = np.concatenate([self.total, np.zeros(pad, np.int64)])
+
+    def update(self, keys: np.ndarray, correct: np.ndarray) -> np.ndarray:
+        """Count this round's predictions, then return correct / total for each key."""
+        keys = np.asarray(keys, dtype=np.int64)
+        if len(keys):
+            self._grow(int(keys.max()) + 1)
+        np.add.at(self.correct, keys, np.asarray(correct, dtype=np.int64))
+        np.add.at(self.total, keys, 1)
+        return self.correct[keys] / self.total[keys]
+
+    def state(self) -> dict:
+        return {"correct": torch.from_numpy(self.correct), "total": torch.from_numpy(self.total)}
+
+    def load(self, state: dict) -> None:
+        self.correct = state["correct"].numpy().copy()
+        self.total = state["total"].numpy().copy()
+
+
+def training_losses(model: W2EModel, batch: Batch, acc: RunningAccuracy,
+                    sim_weight: float = 1.0, sim_grad_to_encoder: bool = True
+                    ) -> tuple[torch.Tensor, dict[str, float]]:
+    """BCE on the affordance interactions + L1 of similarity to running accuracy.
+
+    The affordance head (and, through it, the encoder) only sees ``aff_mask`` interactions;
+    the other interactions' affordance is predicted without gradient, to count accuracy.
+    """
+    feats = model.encode(batch.clouds)  # (B, N, F)
+    f = feats[batch.cloud_of, batch.point_index]  # (K, F)
+    zero = f.sum() * 0.0
+    am, sm = batch.aff_mask, batch.sim_mask
+    stats: dict[str, float] = {}
+    if bool(am.any()):
+        logits = model.aff_head(f[am], batch.actions[am])
+        loss_aff = F.binary_cross_entropy_with_logits(logits, batch.success[am])
+        stats["aff_acc"] = float(((logits > 0).float() == batch.success[am]).float().mean())
+    else:
+        loss_aff = zero
+    loss_sim = zero
+    if bool(sm.any()):
+        with torch.no_grad():  # counted only: no gradient to the affordance head
+            pred = model.aff_head(f[sm].detach(), batch.actions[sm]) > 0
+            right = (pred.float() == batch.success[sm]).cpu().numpy()
+        target = torch.as_tensor(acc.update(batch.interaction[sm.cpu().numpy()], right),
+                                 dtype=torch.float32, device=f.device)
+        fs = f[sm] if sim_grad_to_encoder else f[sm].detach()
+        sim = torch.sigmoid(model.sim_head(fs, batch.actions[sm]))
+        loss_sim = F.l1_loss(sim, target)
+        stats["sim_mean"] = float(sim.detach().mean())
+        stats["sim_target"] = float(target.mean())
+        stats["pred_acc"] = float(right.mean())
+    loss = loss_aff + sim_weight * loss_sim
+    stats.update(loss=loss.item(), loss_aff=loss_aff.item(), loss_sim=loss_sim.item(),
+                 pos_rate=float(batch.success.mean()))
+    return loss, stats
+
+
+class BalancedSampler:
+    """Batches of ``clouds`` observations x ``per_cloud`` interactions.
+
+    Categories are drawn equally; half the clouds come from observations that have a
+    positive interaction, and each cloud gives half positives, half negatives where it can.
+    """
+
+    def __init__(self, data: InteractionData, categories: tuple[str, ...], clouds: int,
+                 per_cloud: int, rng: np.random.Generator) -> None:
+        self.data, self.clouds, self.per_cloud, self.rng = data, clouds, per_cloud, rng
+        order = np.argsort(data.obs_index, kind="stable")
+        bounds = np.searchsorted(data.obs_index[order], np.arange(data.num_observations + 1))
+        self.pos: list[np.ndarray] = []
+        self.neg: list[np.ndarray] = []
+        for o in range(data.num_observations):
+            rows = order[bounds[o]:bounds[o + 1]]
+            self.pos.append(rows[data.success[rows]])
+            self.neg.append(rows[~data.success[rows]])
+        self.by_cat: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        for c in categories:
+            obs = np.flatnonzero(data.category == c)
+            obs = obs[[len(self.pos[o]) + len(self.neg[o]) > 0 for o in obs]]
+            if len(obs) == 0:
+                continue
+            with_pos = obs[[len(self.pos[o]) > 0 for o in obs]]
+            self.by_cat[c] = (obs, with_pos)
+        if not self.by_cat:
+            raise ValueError(f"no interactions of categories {', '.join(categories)} in the "
+                             "training data: collect them with `w2e collect`")
+        self.categories = tuple(self.by_cat)
+
+    def sample_rows(self) -> np.ndarray:
+        rng, half = self.rng, self.per_cloud // 2
+        cats = rng.choice(len(self.categories), size=self.clouds)
+        rows = []
+        for i, ci in enumerate(cats):
+            obs, with_pos = self.by_cat[self.categories[ci]]
+            pool = with_pos if (i % 2 == 0 and len(with_pos)) else obs
+            o = int(pool[rng.integers(len(pool))])
+            pos, neg = self.pos[o], self.neg[o]
+            n_pos = half if len(neg) else self.per_cloud
+            n_pos = n_pos if len(pos) else 0
+            if n_pos:
+                rows.append(rng.choice(pos, size=n_pos, replace=len(pos) < n_pos))
+            n_neg = self.per_cloud - n_pos
+            if n_neg:
+                rows.append(rng.choice(neg, size=n_neg, replace=len(neg) < n_neg))
+        return np.concatenate(rows)
+
+
+def load_training_data(data_dir: str | Path, method: str, combo: str, primitive: str,
+                       include_invalid: bool = True) -> InteractionData:
+    """The train-split interactions of one primitive on the method's training categories."""
+    aff, sim = method_categories(method, combo)
+    cats = tuple(dict.fromkeys(aff + sim))
+    data = InteractionData.load(data_dir)
+    split = load_categories().instances(cats[0], "train")
+    sel = data.select(primitive=primitive, categories=cats, instances=split,
+                      valid_only=not include_invalid)
+    if sel.num_interactions == 0:
+        raise ValueError(f"{data_dir}: no {primitive} interactions on train instances of "
+                         f"{', '.join(cats)}")
+    return sel
+
+
+class Trainer:
+    """Model + Adam + sampler + running-accuracy counters; checkpoints and resumes."""
+
+    def __init__(self, cfg: TrainConfig, data: InteractionData,
+                 model_cfg: ModelConfig | None = None, device: torch.device | None = None
+                 ) -> None:
+        self.cfg, self.data = cfg, data
+        self.device = device or default_device()
+        torch.manual_seed(cfg.seed)
+        self.rng = np.random.default_rng(cfg.seed)
+        self.aff_cats, self.sim_cats = method_categories(cfg.method, cfg.combo)
+        mcfg = model_cfg or ModelConfig(num_points=int(data.points.shape[1]))
+        self.model = W2EModel(mcfg).to(self.device)
+        self.opt = torch.optim.Adam(self.model.parameters(), lr=cfg.lr,
+                                    weight_decay=cfg.weight_decay)
+        self.acc = RunningAccuracy(data.num_interactions)
+        self.sampler = BalancedSampler(data, tuple(dict.fromkeys(self.aff_cats + self.sim_cats)),
+                                       cfg.clouds_per_batch, cfg.interactions_per_cloud, self.rng)
+        self.step = 0
+
+    @property
+    def steps_per_epoch(self) -> int:
+        per_step = self.cfg.clouds_per_batch * self.cfg.interactions_per_cloud
+        return max(1, math.ceil(self.data.num_interactions / per_step))
+
+    def next_batch(self) -> Batch:
+        return make_batch(self.data, self.sampler.sample_rows(), self.aff_cats, self.sim_cats,
+                          self.device)
+
+    def train_step(self, batch: Batch | None = None) -> dict[str, float]:
+        self.model.train()
+        batch = batch if batch is not None else self.next_batch()
+        loss, stats = training_losses(self.model, batch, self.acc, self.cfg.sim_weight,
+                                      self.cfg.sim_grad_to_encoder)
+        self.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        self.opt.step()
+        self.step += 1
+        return stats
+
+    def meta(self) -> dict:
+        return {"method": self.cfg.method, "combo": self.cfg.combo,
+                "primitive": self.cfg.primitive, "step": self.step,
+                "aff_categories": list(self.aff_cats), "sim_categories": list(self.sim_cats)}
+
+    def save(self, run_dir: Path) -> None:
+        """``model.pt`` (weights, a few MB) and ``state.pt`` (everything to resume)."""
+        save_model(run_dir / "model.pt", self.model, self.meta())
+        state = {"step": self.step, "optimizer": self.opt.state_dict(),
+                 "acc": self.acc.state(), "rng": json.dumps(self.rng.bit_generator.state),
+                 "torch_rng": torch.get_rng_state()}
+        tmp = run_dir / "state.pt.tmp"
+        torch.save(state, tmp)
+        tmp.replace(run_dir / "state.pt")
+
+    def resume(self, run_dir: Path) -> None:
+        model, meta = load_model(run_dir / "model.pt", self.device)
+        for k in ("method", "combo", "primitive"):
+            if meta.get(k) != getattr(self.cfg, k):
+                raise ValueError(f"{run_dir} holds a {meta.get(k)} run, not {getattr(self.cfg, k)}")
+        self.model.load_state_dict(model.state_dict())
+        state = torch.load(run_dir / "state.pt", map_location=self.device, weights_only=True)
+        self.opt.load_state_dict(state["optimizer"])
+        self.acc.load(state["acc"])
+        self.rng.bit_generator.state = json.loads(state["rng"])
+        torch.set_rng_state(state["torch_rng"].cpu())
+        self.step = int(state["step"])
+
+
+def run_name(method: str, combo: str, primitive: str) -> str:
+    return f"{method}_{combo}_{primitive}"
+
+
+def train(cfg: TrainConfig, data_dir: str | Path, out_dir: str | Path, resume: bool = False,
+          val_data: InteractionData | None = None, progress: bool = True,
+          model_cfg: ModelConfig | None = None) -> Path:
+    """Train one model; writes ``model.pt``, ``state.pt``, ``metrics.jsonl`` into ``out_dir``."""
+    torch.set_num_threads(cfg.threads)
+    run_dir = Path(out_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    data = load_training_data(data_dir, cfg.method, cfg.combo, cfg.primitive,
+                              cfg.include_invalid)
+    trainer = Trainer(cfg, data, model_cfg)
+    if resume and (run_dir / "state.pt").exists():
+        trainer.resume(run_dir)
+        log.info("resumed %s at step %d", run_dir, trainer.step)
+    elif (run_dir / "metrics.jsonl").exists():
+        (run_dir / "metrics.jsonl").unlink()
+    (run_dir / "config.json").write_text(json.dumps(
+        {"train": asdict(trainer.cfg), "model": trainer.model.cfg.to_dict(),
+         "interactions": data.num_interactions, "observations": data.num_observations,
+         "positive_rate": data.positive_rate(), **trainer.meta()}, indent=2))
+    log.info("%s: %d interactions on %d clouds (%.0f%% positive), aff=%s sim=%s, %d steps "
+             "(%d per epoch) on %s", run_dir.name, data.num_interactions,
+             data.num_observations, 100 * data.positive_rate(), ",".join(trainer.aff_cats),
+             ",".join(trainer.sim_cats) or "-", cfg.steps, trainer.steps_per_epoch,
+             trainer.device)
+    window: list[dict[str, float]] = []
+    t0, start = time.perf_counter(), trainer.step
+    bar = tqdm(total=cfg.steps, initial=trainer.step, disable=not progress, unit="step",
+               dynamic_ncols=True)
+    with (run_dir / "metrics.jsonl").open("a") as mlog:
+        while trainer.step < cfg.steps:
+            window.append(trainer.train_step())
+            bar.update(1)
+            if trainer.step % cfg.log_every == 0 or trainer.step == cfg.steps:
+                rec = {k: float(np.mean([w[k] for w in window if k in w]))
+                       for k in window[-1]}
+                rate = (trainer.step - start) / (time.perf_counter() - t0)
+                rec.update(step=trainer.step, epoch=trainer.step / trainer.steps_per_epoch,
+                           steps_per_s=rate, eta_s=(cfg.steps - trainer.step) / rate)
+                if val_data is not None and (trainer.step % cfg.ckpt_every == 0
+                                             or trainer.step == cfg.steps):
+                    from w2e_ros.core.evaluate import affordance_fscore
+
+                    rec.update({f"val_{k}": v for k, v in
+                                affordance_fscore(trainer.model, val_data).items()})
+                mlog.write(json.dumps(rec) + "\n")
+                mlog.flush()
+                bar.set_postfix(loss=f"{rec['loss']:.3f}", aff=f"{rec.get('aff_acc', 0):.2f}")
+                if not progress:
+                    log.info("step %d/%d loss %.4f (aff %.4f sim %.4f) %.2f step/s eta %.0fs",
+                             trainer.step, cfg.steps, rec["loss"], rec["loss_aff"],
+                             rec["loss_sim"], rate, rec["eta_s"])
+                window = []
+            if trainer.step % cfg.ckpt_every == 0 or trainer.step == cfg.steps:
+                trainer.save(run_dir)
+    bar.close()
+    trainer.save(run_dir)
+    return run_dir / "model.pt"
