@@ -1,0 +1,45 @@
+"""Each strategy picks what it claims to pick."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from w2e_ros.core.strategies import Scored, get_strategy
+
+
+def _scored() -> list[Scored]:
+    return [
+        Scored(affordance=np.array([0.9, 0.1, 0.7]), similarity=np.array([0.8, 0.6, 0.9])),
+        Scored(affordance=np.array([0.45, 0.0]), similarity=np.array([0.7, 0.2])),
+        Scored(affordance=np.array([]), similarity=np.array([])),
+        Scored(affordance=np.array([0.52, 0.99]), similarity=np.array([0.5, 0.95])),
+    ]
+
+
+def test_similarity_picks_the_lowest_similarity_over_all_objects():
+    assert get_strategy("similarity").choose(_scored(), np.random.default_rng(0)) == (1, 1)
+
+
+@pytest.mark.parametrize("name", ["where2act", "nosim"])
+def test_uncertainty_rules_pick_the_affordance_closest_to_one_half(name):
+    assert get_strategy(name).choose(_scored(), np.random.default_rng(0)) == (3, 0)
+
+
+def test_random_picks_valid_candidates_from_every_object():
+    rng = np.random.default_rng(0)
+    picks = [get_strategy("random").choose(_scored(), rng) for _ in range(200)]
+    sizes = [3, 2, 0, 2]
+    assert all(0 <= i < sizes[o] for o, i in picks)
+    assert {o for o, _ in picks} == {0, 1, 3}
+
+
+def test_none_does_not_explore_and_only_similarity_stops_at_the_bar():
+    none = get_strategy("none")
+    assert not none.explores
+    with pytest.raises(RuntimeError):
+        none.choose(_scored(), np.random.default_rng(0))
+    assert get_strategy("similarity").stops_at_bar
+    assert not get_strategy("where2act").stops_at_bar
+    with pytest.raises(ValueError):
+        get_strategy("curiosity")
