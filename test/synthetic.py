@@ -7,8 +7,11 @@ direction, as in the real data.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
+from sim_bridge.types import Action, TrialResult
 from w2e_ros.core.data import InteractionData
 
 
@@ -56,3 +59,29 @@ def synthetic_data(categories=("cabinet", "faucet", "window"), obs_per_cat: int 
         primitive=np.full(K, primitive), motion=np.concatenate(succ).astype(np.float32) * 0.05,
         valid=np.ones(K, bool), success=np.concatenate(succ), trial_seed=np.arange(K),
     )
+
+
+@dataclass
+class Cloud:
+    points: np.ndarray
+    normals: np.ndarray
+    movable: np.ndarray
+
+
+class RuleWorld:
+    """The synthetic data's own rule as a world: push the handle straight in to move it."""
+
+    def __init__(self, data):
+        self.data = data
+        self.executed: list[tuple[int, Action]] = []
+
+    def observe(self, target: int) -> Cloud:
+        d = self.data
+        return Cloud(d.points[target], d.normals[target], d.movable[target])
+
+    def execute(self, target: int, action: Action) -> TrialResult:
+        self.executed.append((target, action))
+        i = int(np.argmin(np.linalg.norm(self.data.points[target] - action.point, axis=1)))
+        ok = bool(self.data.movable[target, i] and action.up[2] < -0.7)
+        return TrialResult(valid=True, success=ok, motion=np.array([0.05 * ok]),
+                           moved_joint=0 if ok else -1, moved_link="")

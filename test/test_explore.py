@@ -2,14 +2,12 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import pytest
 import torch
-from synthetic import synthetic_data
+from synthetic import Cloud, RuleWorld, synthetic_data
 
-from sim_bridge.types import Action, TrialResult
+from sim_bridge.types import TrialResult
 from w2e_ros.core.config import ExploreConfig, ModelConfig
 from w2e_ros.core.explore import W2EExplorer, explore, sample_candidates
 from w2e_ros.core.model import W2EModel
@@ -17,32 +15,6 @@ from w2e_ros.core.strategies import get_strategy
 
 torch.set_num_threads(2)
 SMALL = ModelConfig(num_points=256, sa_npoint=(64, 16, 8, 4))
-
-
-@dataclass
-class Cloud:
-    points: np.ndarray
-    normals: np.ndarray
-    movable: np.ndarray
-
-
-class RuleWorld:
-    """The synthetic data's own rule as a world: push the handle straight in to move it."""
-
-    def __init__(self, data):
-        self.data = data
-        self.executed: list[tuple[int, Action]] = []
-
-    def observe(self, target: int) -> Cloud:
-        d = self.data
-        return Cloud(d.points[target], d.normals[target], d.movable[target])
-
-    def execute(self, target: int, action: Action) -> TrialResult:
-        self.executed.append((target, action))
-        i = int(np.argmin(np.linalg.norm(self.data.points[target] - action.point, axis=1)))
-        ok = bool(self.data.movable[target, i] and action.up[2] < -0.7)
-        return TrialResult(valid=True, success=ok, motion=np.array([0.05 * ok]),
-                           moved_joint=0 if ok else -1, moved_link="")
 
 
 @pytest.fixture(scope="module")

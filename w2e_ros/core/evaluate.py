@@ -1,0 +1,133 @@
+"""``w2e evaluate``: affordance F-score on held-out interactions and sample success rate.
+
+F-score: every interaction of a test collection (unseen TEST instances of the novel
+categories) is predicted from its observation; ``sigmoid(aff) > 0.5`` vs the success label,
+pooled counts (``metrics.fscore``). Sample success: per test object, sample actions, execute
+the one with the highest affordance in the simulator, report the fraction that succeed.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import defaultdict
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from w2e_ros.core.actions import encode_rotation
+from w2e_ros.core.data import InteractionData
+from w2e_ros.core.explore import Candidates, sample_candidates
+from w2e_ros.core.metrics import affordance_fscore_from_probs, success_rate
+from w2e_ros.core.model import W2EModel
+
+log = logging.getLogger("w2e.evaluate")
+
+
+@torch.no_grad()
+def predict_interactions(model: W2EModel, data: InteractionData,
+                         chunk: int = 16) -> tuple[np.ndarray, np.ndarray]:
+    """(K,) affordance probabilities and (K,) similarities, one encoder pass per cloud."""
+    model.eval()
+    aff = np.zeros(data.num_interactions, np.float32)
+    sim = np.zeros(data.num_interactions, np.float32)
+    order = np.argsort(data.obs_index, kind="stable")
+    obs_sorted = data.obs_index[order]
+    dev = model.device
+    for s in range(0, data.num_observations, chunk):
+        pts = torch.from_numpy(np.ascontiguousarray(data.points[s:s + chunk])).to(dev)
+        feats = model.encode(pts.float())
+        lo, hi = np.searchsorted(obs_sorted, [s, s + chunk])
+        rows = order[lo:hi]
+        if not len(rows):
+            continue
+        f = feats[torch.from_numpy(data.obs_index[rows] - s).long().to(dev),
+                  torch.from_numpy(data.point_index[rows]).long().to(dev)]
+        a = torch.from_numpy(encode_rotation(data.up[rows], data.forward[rows])).to(dev)
+        logit, similarity = model.heads(f, a)
+        aff[rows] = torch.sigmoid(logit).cpu().numpy()
+        sim[rows] = similarity.cpu().numpy()
+    return aff, sim
+
+
+def affordance_fscore(model: W2EModel, data: InteractionData) -> dict[str, float]:
+    """Pooled F-score of the model on every interaction of ``data``."""
+    aff, _ = predict_interactions(model, data)
+    return affordance_fscore_from_probs(aff, data.success)
+
+
+def fscore_by_category(model: W2EModel, data: InteractionData) -> dict[str, dict[str, float]]:
+    """Per category, plus ``all`` (pooled over the categories) and ``mean`` (of categories)."""
+    aff, _ = predict_interactions(model, data)
+    cats = data.interaction_category
+    out = {str(c): affordance_fscore_from_probs(aff[cats == c], data.success[cats == c])
+           for c in np.unique(cats)}
+    per_cat = [v["fscore"] for v in out.values()]
+    out["all"] = affordance_fscore_from_probs(aff, data.success)
+    out["mean"] = {"fscore": float(np.mean(per_cat)) if per_cat else float("nan")}
+    return out
+
+
+@dataclass
+class SuccessProbe:
+    """Test objects with fixed candidate actions, so every model is judged on the same
+    actions, and executed outcomes cached (the simulator is deterministic per target)."""
+
+    world: Any  # ExplorationWorld
+    targets: list[Any]
+    primitive: str
+    points_per_object: int = 256
+    dirs_per_point: int = 8
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        rng = np.random.default_rng(self.seed)
+        self.clouds = [self.world.observe(t) for t in self.targets]
+        self.candidates: list[Candidates] = [
+            sample_candidates(c, self.points_per_object, self.dirs_per_point, rng)
+            for c in self.clouds]
+        self._outcomes: dict[tuple[int, int], bool] = {}
+
+    @torch.no_grad()
+    def run(self, model: W2EModel) -> dict[str, float]:
+        """Success rate per category (and ``all``) of the highest-affordance action."""
+        model.eval()
+        by_cat: dict[str, list[bool]] = defaultdict(list)
+        for k, (t, cloud, cand) in enumerate(zip(self.targets, self.clouds, self.candidates,
+                                                 strict=True)):
+            feats = model.encode(torch.from_numpy(cloud.points[None]).float().to(model.device))
+            f = feats[0, torch.from_numpy(cand.point_index).to(model.device)]
+            a = torch.from_numpy(encode_rotation(cand.up, cand.forward)).to(model.device)
+            i = int(torch.argmax(model.aff_head(f, a)))
+            if (k, i) not in self._outcomes:
+                res = self.world.execute(t, cand.action(cloud, i, self.primitive))
+                self._outcomes[(k, i)] = bool(res.success)
+            by_cat[str(getattr(t, "category", "all"))].append(self._outcomes[(k, i)])
+        out = {c: success_rate(v) for c, v in by_cat.items()}
+        out["all"] = success_rate([x for v in by_cat.values() for x in v])
+        out["mean"] = float(np.mean([out[c] for c in by_cat])) if by_cat else float("nan")
+        return out
+
+
+def test_targets(categories: Sequence[str], per_category: int, state_seeds: int = 1
+                 ) -> list[Any]:
+    """The first ``per_category`` TEST instances of each category (x start states)."""
+    from w2e_ros.core.categories import load_categories
+    from w2e_ros.core.sim_world import Target
+
+    cats = load_categories()
+    return [Target(c, i, s) for c in categories
+            for i in cats.instances(c, "test")[:per_category] for s in range(state_seeds)]
+
+
+def evaluate(model: W2EModel, test_data: InteractionData | None,
+             probe: SuccessProbe | None) -> dict[str, Any]:
+    """Both metrics of one model: {"fscore": {cat: {...}}, "success": {cat: rate}}."""
+    out: dict[str, Any] = {}
+    if test_data is not None and test_data.num_interactions:
+        out["fscore"] = fscore_by_category(model, test_data)
+    if probe is not None:
+        out["success"] = probe.run(model)
+    return out
