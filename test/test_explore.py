@@ -117,3 +117,27 @@ def test_fine_tuning_fits_the_explored_interactions(novel, replay):
     exp.update(cloud, cands, i, TrialResult(True, True, np.array([0.05]), 0, "door"))
     after = exp.score([cloud], [cands])[0].affordance[i]
     assert after > max(before, 0.6)
+
+
+@pytest.mark.slow
+def test_loop_explores_simulated_objects_and_learns_from_the_outcomes():
+    from w2e_ros.core.evaluate import SuccessProbe, evaluation_targets
+    from w2e_ros.core.explore import explore_targets
+    from w2e_ros.core.sim_world import SimWorld
+
+    world = SimWorld()
+    torch.manual_seed(0)
+    model = W2EModel()
+    cfg = ExploreConfig(budget=2, points_per_object=16, dirs_per_point=2, finetune_steps=1,
+                        snapshot_budgets=(1, 2))
+    exp = W2EExplorer(model, cfg, None, ("cabinet",), ("cabinet", "faucet", "window"))
+    targets = explore_targets(["kettle"], per_category=2)
+    assert [t.instance for t in targets] == [30, 31]
+    res = explore(exp, world, targets, get_strategy("similarity"), cfg, "pull")
+    assert len(res.steps) == 2 and res.stopped == "budget"
+    assert all(s.target.startswith("kettle/") for s in res.steps)
+    assert exp.explored and all(e.cloud.shape == (2048, 3) for e in exp.explored)
+    probe = SuccessProbe(world, evaluation_targets(["kettle"], 2), "pull", points_per_object=8,
+                         dirs_per_point=2)
+    r = probe.run(exp.model_at(res.snapshots[2]))
+    assert set(r) == {"kettle", "all", "mean"} and 0.0 <= r["all"] <= 1.0

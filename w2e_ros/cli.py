@@ -105,7 +105,136 @@ def _run_train(a: argparse.Namespace) -> int:
     return 0
 
 
-VERBS: list[Callable[[argparse._SubParsersAction], None]] = [_add_collect, _add_train]
+def _add_fewshot(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "fewshot", help="few-shot exploration of the novel categories in the simulator",
+        description="Explore novel categories with a trained model, fine-tuning on every "
+                    "interaction; saves the adapted model after each snapshot budget.")
+    p.add_argument("--model", required=True, help="checkpoint (w2e train's model.pt)")
+    p.add_argument("--replay-data", default=None,
+                   help="training collection replayed during fine-tuning (~1%%)")
+    p.add_argument("--strategy", default="similarity",
+                   choices=["similarity", "where2act", "nosim", "random", "none"])
+    p.add_argument("--mode", default="all", choices=["all", "per-category"],
+                   help="all novel categories in one run, or one run per category")
+    p.add_argument("--categories", nargs="+", default=None,
+                   help="novel categories to explore (default: the 11 not in the combination)")
+    p.add_argument("--budget", type=int, default=5, help="interactions per run")
+    p.add_argument("--objects", type=int, default=10, help="explore instances per category")
+    p.add_argument("--points", type=int, default=256, help="candidate points per object")
+    p.add_argument("--dirs", type=int, default=8, help="candidate actions per point")
+    p.add_argument("--finetune-steps", type=int, default=8)
+    p.add_argument("--bar", type=float, default=0.9, help="mean similarity to stop at")
+    p.add_argument("--out", required=True, help="directory for adapted models and records")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=2)
+    p.set_defaults(func=_run_fewshot)
+
+
+def _run_fewshot(a: argparse.Namespace) -> int:
+    import json
+    from pathlib import Path
+
+    import torch
+
+    from w2e_ros.core.categories import load_categories
+    from w2e_ros.core.config import ExploreConfig
+    from w2e_ros.core.data import InteractionData
+    from w2e_ros.core.explore import fewshot
+    from w2e_ros.core.model import load_model, save_model
+    from w2e_ros.core.sim_world import SimWorld
+    from w2e_ros.core.strategies import get_strategy
+
+    torch.set_num_threads(a.threads)
+    model, meta = load_model(a.model)
+    primitive = meta.get("primitive", "push")
+    cats = a.categories or load_categories().novel(meta.get("combo"))
+    replay = None
+    if a.replay_data:
+        train_cats = list(dict.fromkeys(meta.get("aff_categories", []) +
+                                        meta.get("sim_categories", [])))
+        replay = InteractionData.load(a.replay_data).select(
+            primitive=primitive, categories=train_cats or None,
+            instances=load_categories().instances(cats[0], "train"))
+    cfg = ExploreConfig(budget=a.budget, sim_bar=a.bar, points_per_object=a.points,
+                        dirs_per_point=a.dirs, finetune_steps=a.finetune_steps, seed=a.seed,
+                        snapshot_budgets=tuple(b for b in (1, 2, 5) if b <= a.budget)
+                        or (a.budget,))
+    runs = fewshot(model, meta, SimWorld(model.cfg.num_points), cats, get_strategy(a.strategy),
+                   cfg, primitive, replay, a.mode, a.objects)
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    for group, (res, explorer) in runs.items():
+        for b, snap in res.snapshots.items():
+            save_model(out / f"{group}_budget{b}.pt", explorer.model_at(snap),
+                       {**meta, "fewshot": group, "budget": b, "strategy": a.strategy})
+        (out / f"{group}_records.json").write_text(json.dumps(res.to_dict(), indent=1))
+        ok = sum(s.success for s in res.steps)
+        print(f"{group}: {len(res.steps)} interactions ({ok} successful), stopped at "
+              f"{res.stopped}, mean similarity {res.mean_similarity[0]:.3f} -> "
+              f"{res.mean_similarity[-1]:.3f}")
+    print(f"adapted models: {out}")
+    return 0
+
+
+def _add_evaluate(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "evaluate", help="F-score on held-out interactions and sample success in the simulator",
+        description="Evaluate one model on unseen TEST instances of the novel categories.")
+    p.add_argument("--model", required=True, help="checkpoint (train or fewshot output)")
+    p.add_argument("--test-data", default=None,
+                   help="collection of test-split interactions (w2e collect --split test)")
+    p.add_argument("--categories", nargs="+", default=None,
+                   help="categories to evaluate (default: the combination's novel ones)")
+    p.add_argument("--objects", type=int, default=10,
+                   help="test objects per category for the sample success rate (0: skip)")
+    p.add_argument("--points", type=int, default=256, help="candidate points per object")
+    p.add_argument("--dirs", type=int, default=8, help="candidate actions per point")
+    p.add_argument("--json", default=None, help="write the full result here")
+    p.add_argument("--threads", type=int, default=2)
+    p.set_defaults(func=_run_evaluate)
+
+
+def _run_evaluate(a: argparse.Namespace) -> int:
+    import json
+
+    import torch
+
+    from w2e_ros.core.categories import load_categories
+    from w2e_ros.core.data import InteractionData
+    from w2e_ros.core.evaluate import SuccessProbe, evaluate, evaluation_targets
+    from w2e_ros.core.model import load_model
+    from w2e_ros.core.sim_world import SimWorld
+
+    torch.set_num_threads(a.threads)
+    model, meta = load_model(a.model)
+    primitive = meta.get("primitive", "push")
+    cats = a.categories or load_categories().novel(meta.get("combo"))
+    test = None
+    if a.test_data:
+        test = InteractionData.load(a.test_data).select(
+            primitive=primitive, categories=cats,
+            instances=load_categories().instances(cats[0], "test"))
+    probe = None
+    if a.objects > 0:
+        probe = SuccessProbe(SimWorld(model.cfg.num_points), evaluation_targets(cats, a.objects),
+                             primitive, a.points, a.dirs)
+    res = evaluate(model, test, probe)
+    print(f"{'category':<16} {'F-score':>8} {'P':>6} {'R':>6} {'n':>6} {'success':>8}")
+    for c in [*cats, "all", "mean"]:
+        f = res.get("fscore", {}).get(c, {})
+        s = res.get("success", {}).get(c, float("nan"))
+        print(f"{c:<16} {100 * f.get('fscore', float('nan')):8.1f} "
+              f"{100 * f.get('precision', float('nan')):6.1f} "
+              f"{100 * f.get('recall', float('nan')):6.1f} {f.get('n', 0):6d} {100 * s:8.1f}")
+    if a.json:
+        with open(a.json, "w") as fh:
+            json.dump({"model": a.model, "meta": meta, **res}, fh, indent=1)
+    return 0
+
+
+VERBS: list[Callable[[argparse._SubParsersAction], None]] = [_add_collect, _add_train,
+                                                              _add_fewshot, _add_evaluate]
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -111,7 +111,7 @@ class SuccessProbe:
         return out
 
 
-def test_targets(categories: Sequence[str], per_category: int, state_seeds: int = 1
+def evaluation_targets(categories: Sequence[str], per_category: int, state_seeds: int = 1
                  ) -> list[Any]:
     """The first ``per_category`` TEST instances of each category (x start states)."""
     from w2e_ros.core.categories import load_categories

@@ -266,3 +266,45 @@ class W2EExplorer:
         m = copy.deepcopy(self.model)
         m.load_state_dict(snapshot)
         return m.eval()
+
+
+# --- offline few-shot runs (``w2e fewshot`` and the benchmark) ----------------------------
+
+def explore_targets(categories: Sequence[str], per_category: int = 10,
+                    state_seeds: int = 1) -> list[Any]:
+    """The EXPLORE-split instances of each category (10 per novel category in the paper)."""
+    from w2e_ros.core.categories import load_categories
+    from w2e_ros.core.sim_world import Target
+
+    cats = load_categories()
+    return [Target(c, i, s) for c in categories
+            for i in cats.instances(c, "explore")[:per_category] for s in range(state_seeds)]
+
+
+def fewshot(model: W2EModel, meta: dict, world: ExplorationWorld, categories: Sequence[str],
+            strategy: Strategy, cfg: ExploreConfig, primitive: str,
+            replay: InteractionData | None = None, mode: str = "all",
+            per_category: int = 10) -> dict[str, tuple[ExplorationResult, W2EExplorer]]:
+    """Few-shot learning on novel ``categories``: all at once (``mode="all"``, one run) or one
+    category at a time (``mode="per-category"``, one run each, every run from ``model``).
+
+    Returns group name -> (result with snapshots, the explorer that holds the adapted model).
+    """
+    if mode not in ("all", "per-category"):
+        raise ValueError(f"unknown mode {mode!r} (all | per-category)")
+    groups = {"all": list(categories)} if mode == "all" else {c: [c] for c in categories}
+    aff, sim = tuple(meta.get("aff_categories", ())), tuple(meta.get("sim_categories", ()))
+    initial = {k: v.detach().clone() for k, v in model.state_dict().items()}
+    out: dict[str, tuple[ExplorationResult, W2EExplorer]] = {}
+    for name, cats in groups.items():
+        m = copy.deepcopy(model)
+        m.load_state_dict(initial)
+        explorer = W2EExplorer(m, cfg, replay, aff, sim, train_similarity=bool(sim),
+                               seed=cfg.seed)
+        targets = explore_targets(cats, per_category)
+        log.info("few-shot %s on %s (%d objects), %s, budget %d", strategy.name, name,
+                 len(targets), primitive, cfg.budget)
+        res = explore(explorer, world, targets, strategy, cfg, primitive,
+                      rng=np.random.default_rng(cfg.seed))
+        out[name] = (res, explorer)
+    return out
