@@ -1,0 +1,154 @@
+"""Start, stop and clean up ROS node processes without ``ros2 launch`` (plain Python, no rclpy).
+
+Used by ``w2e_ros.bringup`` and the multi-process tests. The facts it is built around
+(DESIGN §7): nodes must run under the venv's Python (the wheels set LD_LIBRARY_PATH at
+start-up); a node sent SIGTERM in its first second can miss it, so stopping is TERM, wait,
+TERM again, then KILL; killed nodes leave Fast DDS shared-memory files in /dev/shm.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterable
+from pathlib import Path
+
+SHM_DIR = Path("/dev/shm")
+SOURCE_ROOT = Path(__file__).resolve().parents[2]
+"""The directory holding the w2e_ros and sim_bridge packages."""
+_SHM_PATTERNS = ("fastrtps_*", "sem.fastrtps_*")
+
+
+def venv_python() -> str:
+    """The Python that runs the nodes: this interpreter (the venv's when run from it)."""
+    return sys.executable
+
+
+def ros_env(
+    domain_id: int | None = None,
+    log_dir: str | os.PathLike | None = None,
+    localhost_only: bool = True,
+    base: dict[str, str] | None = None,
+) -> dict[str, str]:
+    """An environment for node processes: domain, log directory, discovery kept on this host.
+
+    Unbuffered output so prefixed node logs arrive line by line.
+    """
+    env = dict(os.environ if base is None else base)
+    if domain_id is not None:
+        env["ROS_DOMAIN_ID"] = str(int(domain_id))
+    if log_dir is not None:
+        Path(log_dir).mkdir(parents=True, exist_ok=True)
+        env["ROS_LOG_DIR"] = str(log_dir)
+    if localhost_only:
+        env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    env.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
+    # children import the same source tree as this process, installed or not
+    root = str(SOURCE_ROOT)
+    paths = [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p]
+    if root not in paths:
+        env["PYTHONPATH"] = os.pathsep.join([root, *paths])
+    env["PYTHONUNBUFFERED"] = "1"
+    return env
+
+
+def pick_domain_id(salt: int = 0) -> int:
+    """A ROS domain id in [100, 199] unlikely to collide with a concurrent run on this host."""
+    return 100 + (os.getpid() * 7 + salt * 13 + int(time.time() * 1000)) % 100
+
+
+def stop_process(proc: subprocess.Popen, timeout: float = 5.0, group: bool = True) -> int | None:
+    """Stop a node: SIGTERM, wait, SIGTERM again (a node may miss one sent while starting),
+    then SIGKILL. ``group``: signal the process group (the child was started with
+    ``start_new_session=True``). Returns the exit code.
+    """
+
+    def send(sig: int) -> None:
+        try:
+            if group:
+                os.killpg(proc.pid, sig)
+            else:
+                proc.send_signal(sig)
+        except (ProcessLookupError, PermissionError):
+            pass
+
+    if proc.poll() is not None:
+        return proc.returncode
+    for sig, wait in ((signal.SIGTERM, timeout * 0.6), (signal.SIGTERM, timeout * 0.4)):
+        send(sig)
+        try:
+            return proc.wait(timeout=wait)
+        except subprocess.TimeoutExpired:
+            continue
+    send(signal.SIGKILL)
+    try:
+        return proc.wait(timeout=5.0)
+    except subprocess.TimeoutExpired:
+        return None
+
+
+def shm_files() -> set[Path]:
+    """Fast DDS shared-memory segments, port and lock files currently in /dev/shm."""
+    out: set[Path] = set()
+    for pattern in _SHM_PATTERNS:
+        out.update(SHM_DIR.glob(pattern))
+    return out
+
+
+def _paths_in_use(ignore_pids: Iterable[int] = ()) -> set[str]:
+    """Every /dev/shm path some live process has open or mapped (so must not be removed)."""
+    used: set[str] = set()
+    ignore = {str(p) for p in ignore_pids}
+    for pid_dir in Path("/proc").glob("[0-9]*"):
+        if pid_dir.name in ignore:
+            continue
+        try:
+            for fd in (pid_dir / "fd").iterdir():
+                try:
+                    target = os.readlink(fd)
+                except OSError:
+                    continue
+                if target.startswith("/dev/shm/"):
+                    used.add(target)
+            with open(pid_dir / "maps") as maps:
+                for line in maps:
+                    i = line.find("/dev/shm/")
+                    if i >= 0:
+                        used.add(line[i:].strip().removesuffix(" (deleted)"))
+        except (OSError, PermissionError):
+            continue
+    return used
+
+
+def clean_shm(before: set[Path] | None = None, ignore_pids: Iterable[int] = ()) -> list[Path]:
+    """Remove Fast DDS shm files that appeared since ``before`` and no live process uses.
+
+    Files of other runs on this host (present in ``before``, or still open) are left alone.
+    ``ignore_pids``: processes whose use does not count (this one, at exit, after its ROS
+    contexts are shut down).
+    """
+    candidates = shm_files() - (before or set())
+    if not candidates:
+        return []
+    used = _paths_in_use(ignore_pids)
+    removed = []
+    for path in sorted(candidates):
+        if str(path) in used:
+            continue
+        try:
+            path.unlink()
+            removed.append(path)
+        except OSError:
+            pass
+    return removed
+
+
+def clean_shm_at_exit(before: set[Path] | None = None) -> None:
+    """At interpreter exit, remove the shm files this process and its children left behind
+    (a process that used rclpy keeps its own files mapped until it exits)."""
+    import atexit
+
+    atexit.register(lambda: clean_shm(before, ignore_pids=(os.getpid(),)))
