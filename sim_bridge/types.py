@@ -51,3 +51,5 @@ class TrialResult:
     moved_link: str  # name of the child link of that joint ("" if none)
     reason: str = ""  # why a trial is invalid or failed; empty on success
     contact_displacement: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    target_joint: int = -1  # index (qpos order) of the joint moving the touched part, -1: none
+    target_link: str = ""  # name of the link the contact point lies on

@@ -1,0 +1,325 @@
+"""A world of one or more articulated objects that observes and runs push/pull trials.
+
+Every trial builds a fresh physics-only SAPIEN scene, restores the given joint state,
+drops in the flying gripper and executes the primitive (DESIGN §3), so trials are
+independent and bit-identical for the same inputs. The camera works from the same
+object descriptions without any physics.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from sim_bridge.camera import CameraSettings, PosedMesh, make_camera, random_view, view_pose
+from sim_bridge.geometry import make_pose, normalize, sapien_to_pose, transform_points
+from sim_bridge.objects.model import ObjectModel
+from sim_bridge.types import Action, Observation, TrialResult
+
+PUSH_START = 0.15  # wrist behind the contact point at the start (m, along -up)
+PUSH_END = 0.10  # wrist behind the contact point at the end of the push / approach
+SIDE_MOVE = 0.05  # extra move of the -left / -up variants
+MOTION_THRESHOLD = 0.01  # DESIGN §3: success needs |motion| > 0.01 (m or rad)
+RANGE_FRACTION = 0.5  # ... or |motion| / range > 0.5
+PULL_COSINE = 0.5  # pull: contact point must move along -up
+
+
+@dataclass
+class SimSettings:
+    """Step schedule of a trial (240 Hz; ~0.1 m/s hand speed) and the camera."""
+
+    timestep: float = 1.0 / 240.0
+    move_steps: int = 90  # one 5 cm move
+    close_steps: int = 40  # closing the fingers
+    settle_steps: int = 20  # hold at the end before measuring
+    touch_impulse: float = 1e-6  # a contact counts as touching above this impulse (N s)
+    camera: CameraSettings = field(default_factory=CameraSettings)
+
+
+def gripper_frame(action: Action) -> np.ndarray:
+    """Rotation with columns [forward, left, up] (forward made orthogonal to up)."""
+    up = normalize(action.up)
+    fwd = np.asarray(action.forward, float) - (np.asarray(action.forward, float) @ up) * up
+    fwd = normalize(fwd)
+    return np.stack([fwd, np.cross(up, fwd), up], axis=1)
+
+
+def schedule(primitive: str) -> tuple[list[tuple[np.ndarray, float, str]], float]:
+    """Waypoints (wrist offset in the gripper frame, finger target, kind) and start fingers.
+
+    The offset is measured from the start pose (0.15 m behind the point along up).
+    """
+    approach = np.array([0.0, 0.0, PUSH_START - PUSH_END])
+    side = {"left": np.array([SIDE_MOVE, 0, 0]), "up": np.array([0, SIDE_MOVE, 0])}
+    base, _, variant = primitive.partition("-")
+    if base == "push":
+        steps = [(approach, 0.0, "move")]
+        if variant:
+            steps.append((approach + side[variant], 0.0, "move"))
+        return steps, 0.0
+    if base == "pull":
+        steps = [(approach, 0.04, "move"), (approach, 0.0, "close"), (np.zeros(3), 0.0, "move")]
+        if variant:
+            steps.append((side[variant], 0.0, "move"))
+        return steps, 0.04
+    raise ValueError(f"unknown primitive {primitive!r}")
+
+
+class ObjectWorld:
+    """One or several :class:`ObjectModel` placed in the world at 4x4 poses."""
+
+    def __init__(
+        self,
+        models: ObjectModel | Sequence[ObjectModel],
+        poses: Sequence[np.ndarray] | None = None,
+        settings: SimSettings | None = None,
+    ):
+        self.models = [models] if isinstance(models, ObjectModel) else list(models)
+        self.poses = (
+            [np.eye(4) for _ in self.models]
+            if poses is None
+            else [np.asarray(p, float) for p in poses]
+        )
+        if len(self.poses) != len(self.models):
+            raise ValueError("one pose per model")
+        self.settings = settings or SimSettings()
+        self._meshes = [m.link_meshes() for m in self.models]
+        self._movable = [m.movable_links() for m in self.models]
+        sizes = [len(m.movable_joints) for m in self.models]
+        self._offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
+        self._camera = None
+
+    @classmethod
+    def from_urdf(
+        cls,
+        folder: str | Path,
+        pose: np.ndarray | None = None,
+        settings: SimSettings | None = None,
+        **kwargs,
+    ) -> ObjectWorld:
+        """A world holding one PartNet-Mobility object (folder with ``mobility.urdf``)."""
+        from sim_bridge.urdf_loader import load_partnet
+
+        model = load_partnet(folder, **kwargs)
+        return cls(model, None if pose is None else [pose], settings)
+
+    # -- joints ----------------------------------------------------------------------------
+    @property
+    def joint_names(self) -> list[str]:
+        """Movable joint names (qpos order); prefixed by the object name if several."""
+        if len(self.models) == 1:
+            return self.models[0].joint_names
+        return [f"{m.name}/{n}" for m in self.models for n in m.joint_names]
+
+    @property
+    def joint_limits(self) -> np.ndarray:
+        """(J, 2) lower / upper limits (qpos order)."""
+        return np.concatenate([m.joint_limits for m in self.models]).reshape(-1, 2)
+
+    @property
+    def n_joints(self) -> int:
+        """Number of movable joints of all objects."""
+        return int(self._offsets[-1])
+
+    def split_qpos(self, qpos: np.ndarray) -> list[np.ndarray]:
+        """Per-object slices of a world qpos."""
+        qpos = np.asarray(qpos, float)
+        if qpos.shape != (self.n_joints,):
+            raise ValueError(f"qpos must have shape ({self.n_joints},), got {qpos.shape}")
+        return [qpos[a:b] for a, b in zip(self._offsets[:-1], self._offsets[1:], strict=True)]
+
+    def sample_start_state(self, rng: np.random.Generator) -> np.ndarray:
+        """50 % closed, 50 % between closed and the middle, per joint (DESIGN §3)."""
+        return np.concatenate([m.sample_start_state(rng) for m in self.models])
+
+    # -- geometry --------------------------------------------------------------------------
+    def link_poses(self, qpos: np.ndarray) -> list[np.ndarray]:
+        """Per object, (L, 4, 4) world poses of its links at ``qpos``."""
+        return [
+            p @ m.link_poses(q)
+            for m, p, q in zip(self.models, self.poses, self.split_qpos(qpos), strict=True)
+        ]
+
+    def posed_meshes(self, qpos: np.ndarray) -> list[PosedMesh]:
+        """Every link's triangles in the world frame at ``qpos``."""
+        out = []
+        for k, poses in enumerate(self.link_poses(qpos)):
+            for i, (v, t) in enumerate(self._meshes[k]):
+                if len(t):
+                    out.append(
+                        PosedMesh(transform_points(poses[i], v), t, k, i, bool(self._movable[k][i]))
+                    )
+        return out
+
+    def center(self) -> np.ndarray:
+        """Centre of the closed objects' bounds: where the camera looks."""
+        pts = []
+        for m, p in zip(self.models, self.poses, strict=True):
+            pts.append(transform_points(p, m.bounds()))
+        allp = np.concatenate(pts)
+        return (allp.min(0) + allp.max(0)) / 2
+
+    def locate(self, qpos: np.ndarray, point) -> tuple[int, int, float]:
+        """(object id, link id, distance) of the link surface nearest to ``point``."""
+        import open3d as o3d
+
+        scene = o3d.t.geometry.RaycastingScene()
+        meshes = self.posed_meshes(qpos)
+        for m in meshes:
+            scene.add_triangles(
+                o3d.core.Tensor(m.vertices.astype(np.float32)),
+                o3d.core.Tensor(m.triangles.astype(np.uint32)),
+            )
+        q = o3d.core.Tensor(np.asarray(point, np.float32).reshape(1, 3))
+        res = scene.compute_closest_points(q)
+        g = int(res["geometry_ids"].numpy()[0])
+        dist = float(np.linalg.norm(res["points"].numpy()[0] - np.asarray(point)))
+        return meshes[g].object_id, meshes[g].link_id, dist
+
+    # -- camera ----------------------------------------------------------------------------
+    def observe(
+        self,
+        qpos: np.ndarray,
+        rng: np.random.Generator | None = None,
+        camera_pose: np.ndarray | None = None,
+    ) -> Observation:
+        """The full partial cloud from ``camera_pose``, a random view (rng) or the default."""
+        cs = self.settings.camera
+        if camera_pose is None:
+            if rng is not None:
+                camera_pose = random_view(self.center(), rng, cs)
+            else:
+                camera_pose = view_pose(self.center(), *cs.default_view_deg, cs.distance)
+        if self._camera is None:
+            self._camera = make_camera(cs)
+        return self._camera.capture(self.posed_meshes(qpos), camera_pose)
+
+    # -- trials ----------------------------------------------------------------------------
+    def run_trial(self, qpos: np.ndarray, action: Action, seed: int = 0) -> TrialResult:
+        """Execute one primitive from state ``qpos`` in a fresh scene.
+
+        ``seed`` is accepted for API stability; the trial itself has no randomness, so the
+        same (qpos, action) always gives the same, bit-identical result.
+        """
+        from sim_bridge.physics import build_gripper, build_object, make_scene
+
+        del seed
+        s = self.settings
+        qpos = np.asarray(qpos, float)
+        point = np.asarray(action.point, float)
+        R = gripper_frame(action)
+        up = R[:, 2]
+        obj_id, link_id, _ = self.locate(qpos, point)
+        model = self.models[obj_id]
+        local_joint = model.driving_joint(link_id)
+        target_joint = int(self._offsets[obj_id] + local_joint) if local_joint >= 0 else -1
+        target_link = model.links[link_id].name
+
+        scene = make_scene(s.timestep)
+        built = []
+        for k, (m, p, q) in enumerate(
+            zip(self.models, self.poses, self.split_qpos(qpos), strict=True)
+        ):
+            bo = build_object(scene, m, p, name_prefix=f"{k}:")
+            bo.set_qpos(q)
+            built.append(bo)
+        target_comp = built[obj_id].links[link_id]
+        link_start = sapien_to_pose(target_comp.entity_pose)
+        local_point = transform_points(np.linalg.inv(link_start), point[None])[0]
+        waypoints, fingers = schedule(action.primitive)
+        gripper = build_gripper(scene, make_pose(R, point - PUSH_START * up), fingers)
+        names = {
+            f"{k}:{lk.name}": (k, i)
+            for k, m in enumerate(self.models)
+            for i, lk in enumerate(m.links)
+        }
+
+        def touches() -> set[tuple[int, int]]:
+            out = set()
+            for c in scene.get_contacts():
+                a, b = c.bodies[0].name, c.bodies[1].name
+                if a.startswith("gripper/") == b.startswith("gripper/"):
+                    continue
+                other = b if a.startswith("gripper/") else a
+                if other not in names:
+                    continue
+                if any(
+                    np.linalg.norm(pt.impulse) > s.touch_impulse or pt.separation < -1e-4
+                    for pt in c.points
+                ):
+                    out.add(names[other])
+            return out
+
+        scene.step()
+        reason = ""
+        if touches():
+            reason = "contact at first step"
+        pushing = action.primitive.startswith("push")
+        current, grip = np.zeros(3), fingers
+        if not reason:
+            for target, fing, kind in waypoints:
+                n = s.close_steps if kind == "close" else s.move_steps
+                start = current.copy()
+                for i in range(1, n + 1):
+                    a = i / n
+                    gripper.set_target(
+                        start + (target - start) * a,
+                        grip + (fing - grip) * a if kind == "close" else fing,
+                    )
+                    scene.step()
+                    if pushing and touches() - {(obj_id, link_id)}:
+                        reason = "push touched a non-target part"
+                        break
+                if reason:
+                    break
+                current, grip = target, fing
+            if not reason:
+                for _ in range(s.settle_steps):
+                    scene.step()
+
+        q_end = np.concatenate([bo.qpos() for bo in built])
+        motion = q_end - qpos
+        link_end = sapien_to_pose(target_comp.entity_pose)
+        disp = transform_points(link_end, local_point[None])[0] - point
+        moved = int(np.argmax(np.abs(motion))) if len(motion) else -1
+        if moved >= 0 and abs(motion[moved]) <= 1e-3:
+            moved = -1
+        moved_link = ""
+        if moved >= 0:
+            k = int(np.searchsorted(self._offsets, moved, side="right") - 1)
+            m = self.models[k]
+            child = m.links[m.movable_joints[moved - self._offsets[k]].child].name
+            moved_link = child if len(self.models) == 1 else f"{m.name}/{child}"
+        valid = reason == ""
+        success = False
+        if valid:
+            if target_joint < 0:
+                reason = "contact point is on a fixed part"
+            else:
+                lim = self.joint_limits[target_joint]
+                mv = abs(motion[target_joint])
+                rng_ = max(lim[1] - lim[0], 1e-9)
+                success = mv > MOTION_THRESHOLD or mv / rng_ > RANGE_FRACTION
+                if not success:
+                    reason = "part did not move enough"
+                elif not pushing:
+                    hand_move = R @ (waypoints[-1][0] - waypoints[0][0])
+                    pull_dir = normalize(hand_move) if np.linalg.norm(hand_move) > 0 else -up
+                    cos = disp @ pull_dir / max(np.linalg.norm(disp), 1e-12)
+                    if cos <= PULL_COSINE:
+                        success = False
+                        reason = "pull moved the part the wrong way"
+        return TrialResult(
+            valid=valid,
+            success=bool(success),
+            motion=motion,
+            moved_joint=moved,
+            moved_link=moved_link,
+            reason=reason,
+            contact_displacement=disp,
+            target_joint=target_joint,
+            target_link=target_link,
+        )
