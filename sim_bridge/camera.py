@@ -18,6 +18,7 @@ from __future__ import annotations
 import os
 import tempfile
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -81,13 +82,19 @@ def random_view(center, rng: np.random.Generator, settings: CameraSettings) -> n
 
 def pixel_rays(settings: CameraSettings) -> np.ndarray:
     """(H*W, 3) unit ray directions in the camera frame (x forward, y left, z up)."""
-    f = (settings.height / 2) / np.tan(np.radians(settings.fov_deg) / 2)
-    v, u = np.mgrid[0 : settings.height, 0 : settings.width]
+    return _pixel_rays(settings.width, settings.height, settings.fov_deg)
+
+
+@lru_cache(maxsize=4)
+def _pixel_rays(width: int, height: int, fov_deg: float) -> np.ndarray:
+    f = (height / 2) / np.tan(np.radians(fov_deg) / 2)
+    v, u = np.mgrid[0:height, 0:width]
     d = np.stack(
-        [np.full(u.shape, f), (settings.width / 2 - (u + 0.5)), (settings.height / 2 - (v + 0.5))],
-        axis=-1,
+        [np.full(u.shape, f), (width / 2 - (u + 0.5)), (height / 2 - (v + 0.5))], axis=-1
     ).reshape(-1, 3)
-    return d / np.linalg.norm(d, axis=1, keepdims=True)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    d.setflags(write=False)
+    return d
 
 
 class RaycastCamera:
