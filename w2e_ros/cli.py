@@ -233,8 +233,62 @@ def _run_evaluate(a: argparse.Namespace) -> int:
     return 0
 
 
+def _add_benchmark(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "benchmark", help="all methods x budgets x primitives over combinations and seeds",
+        description="Few-shot benchmark (paper Tables 1-3): markdown tables, a metric-vs-budget "
+                    "plot and heatmaps in --out. Reduce combos/seeds/objects for a quick run.")
+    p.add_argument("--runs", default="runs",
+                   help="directory of trained runs <method>_<combo>_<primitive>/model.pt")
+    p.add_argument("--train-data", default=None, help="training collection (replay)")
+    p.add_argument("--test-data", default=None, help="test-split collection (F-score)")
+    p.add_argument("--out", default="results/benchmark")
+    p.add_argument("--combos", nargs="+", default=["cfw", "csr", "tfr", "tsw"])
+    p.add_argument("--seeds", nargs="+", type=int, default=[0])
+    p.add_argument("--primitives", nargs="+", default=["push", "pull"])
+    p.add_argument("--methods", nargs="+", default=["none", "random", "where2act", "nosim",
+                                                    "similarity", "fulldata"])
+    p.add_argument("--budgets", nargs="+", type=int, default=[1, 2, 5])
+    p.add_argument("--mode", default="all", choices=["all", "per-category"])
+    p.add_argument("--categories", nargs="+", default=None,
+                   help="only these novel categories (reduced run)")
+    p.add_argument("--explore-objects", type=int, default=10, help="per novel category")
+    p.add_argument("--test-objects", type=int, default=10,
+                   help="per novel category, for sample success (0: skip)")
+    p.add_argument("--points", type=int, default=256, help="candidate points per object")
+    p.add_argument("--dirs", type=int, default=8, help="candidate actions per point")
+    p.add_argument("--finetune-steps", type=int, default=8)
+    p.add_argument("--no-heatmaps", action="store_true")
+    p.add_argument("--threads", type=int, default=2)
+    p.set_defaults(func=_run_benchmark)
+
+
+def _run_benchmark(a: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    import torch
+
+    from w2e_ros.core.benchmark import BenchmarkConfig, run_benchmark
+    from w2e_ros.core.config import ExploreConfig
+
+    torch.set_num_threads(a.threads)
+    cfg = BenchmarkConfig(
+        runs_dir=a.runs, train_data=a.train_data, test_data=a.test_data, out=a.out,
+        combos=tuple(a.combos), seeds=tuple(a.seeds), primitives=tuple(a.primitives),
+        methods=tuple(a.methods), budgets=tuple(a.budgets), mode=a.mode,
+        categories=tuple(a.categories) if a.categories else None,
+        explore_objects=a.explore_objects, test_objects=a.test_objects,
+        eval_points=a.points, eval_dirs=a.dirs, heatmaps=not a.no_heatmaps,
+        explore=ExploreConfig(points_per_object=a.points, dirs_per_point=a.dirs,
+                              finetune_steps=a.finetune_steps))
+    run_benchmark(cfg)
+    print((Path(a.out) / "tables.md").read_text())
+    return 0
+
+
 VERBS: list[Callable[[argparse._SubParsersAction], None]] = [_add_collect, _add_train,
-                                                              _add_fewshot, _add_evaluate]
+                                                              _add_fewshot, _add_evaluate,
+                                                              _add_benchmark]
 
 
 def build_parser() -> argparse.ArgumentParser:

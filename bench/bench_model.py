@@ -1,0 +1,161 @@
+"""Latency and throughput of the model vs the naive way, measured in one run (DESIGN §6).
+
+* Full map: affordance + similarity for all N points x K actions. Ours: one encoder pass and
+  the split heads. Unsplit: one encoder pass, then the heads on N*K concatenated
+  [feature, action] rows. Naive: one encoder pass per query (timed on a few queries and
+  extrapolated to N*K).
+* Training: interactions per second. Ours: a few clouds x many interactions per step (grouped
+  by observation). Naive: the reference layout, one cloud per interaction (batch of 32).
+
+Usage: python bench/bench_model.py [--points 2048 10000] [--dirs 64] [--threads 2] [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from w2e_ros.core.config import ModelConfig
+from w2e_ros.core.model import W2EModel
+from w2e_ros.core.train import Batch, RunningAccuracy, training_losses
+
+
+def _time(fn, repeat: int) -> float:
+    fn()  # warm-up
+    ts = []
+    for _ in range(repeat):
+        t = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t)
+    return float(np.median(ts))
+
+
+def _cloud(B: int, N: int, seed: int = 0) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    x = torch.rand(B, N, 3, generator=g) - 0.5
+    x[..., 2] *= 0.3  # a slab, roughly object-like extents
+    return x
+
+
+def bench_map(model: W2EModel, N: int, K: int, repeat: int, naive_queries: int) -> dict:
+    x = _cloud(1, N)
+    actions = torch.randn(1, N, K, 6)
+
+    @torch.no_grad()
+    def ours():
+        model.score_map(model.encode(x), actions)
+
+    @torch.no_grad()
+    def unsplit():
+        feats = model.encode(x)
+        f = feats.unsqueeze(2).expand(-1, -1, K, -1)
+        for head in (model.aff_head, model.sim_head):
+            w = torch.cat([head.point_fc.weight, head.action_fc.weight], dim=1)
+            h = F.leaky_relu(F.linear(torch.cat([f, actions], -1), w, head.point_fc.bias), 0.01)
+            head.out(h)
+
+    @torch.no_grad()
+    def naive():  # the reference: the encoder runs for every (point, action) query
+        for q in range(naive_queries):
+            feats = model.encode(x)
+            model.heads(feats[0, q], actions[0, q, 0])
+
+    t_ours = _time(ours, repeat)
+    t_unsplit = _time(unsplit, max(1, repeat // 2))
+    t_naive_q = _time(naive, 1) / naive_queries
+    t_enc = _time(lambda: model.encode(x).detach(), repeat)
+    return {"points": N, "dirs": K, "pairs": N * K, "encoder_s": t_enc, "ours_s": t_ours,
+            "unsplit_s": t_unsplit, "naive_per_query_s": t_naive_q,
+            "naive_full_map_s": t_naive_q * N * K,
+            "ratio_unsplit_over_ours": t_unsplit / t_ours,
+            "ratio_naive_over_ours": t_naive_q * N * K / t_ours}
+
+
+def _batch(B: int, N: int, per_cloud: int, seed: int) -> Batch:
+    K = B * per_cloud
+    g = torch.Generator().manual_seed(seed)
+    return Batch(clouds=_cloud(B, N, seed), cloud_of=torch.arange(B).repeat_interleave(per_cloud),
+                 point_index=torch.randint(0, N, (K,), generator=g),
+                 actions=torch.randn(K, 6, generator=g),
+                 success=(torch.rand(K, generator=g) > 0.5).float(),
+                 interaction=np.arange(K), aff_mask=torch.ones(K, dtype=torch.bool),
+                 sim_mask=torch.ones(K, dtype=torch.bool))
+
+
+def bench_train(cfg: ModelConfig, N: int, clouds: int, per_cloud: int, naive_batch: int,
+                repeat: int) -> dict:
+    torch.manual_seed(0)
+    model = W2EModel(cfg).train()
+    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
+    acc = RunningAccuracy()
+
+    def step(batch: Batch):
+        loss, _ = training_losses(model, batch, acc)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+
+    ours_b, naive_b = _batch(clouds, N, per_cloud, 1), _batch(naive_batch, N, 1, 2)
+    t_ours = _time(lambda: step(ours_b), repeat)
+    t_naive = _time(lambda: step(naive_b), max(1, repeat // 2))
+    ours_rate, naive_rate = clouds * per_cloud / t_ours, naive_batch / t_naive
+    return {"points": N, "ours_step_s": t_ours, "ours_batch": f"{clouds}x{per_cloud}",
+            "ours_interactions_per_s": ours_rate, "naive_step_s": t_naive,
+            "naive_batch": f"{naive_batch}x1", "naive_interactions_per_s": naive_rate,
+            "ratio_ours_over_naive": ours_rate / naive_rate}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--points", type=int, nargs="+", default=[2048, 10000])
+    ap.add_argument("--dirs", type=int, default=64, help="actions per point in the full map")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--clouds", type=int, default=4)
+    ap.add_argument("--per-cloud", type=int, default=16)
+    ap.add_argument("--naive-batch", type=int, default=32)
+    ap.add_argument("--first-level", type=int, nargs="+", default=[512],
+                    help="first set-abstraction centroids to compare (e.g. 512 1024)")
+    ap.add_argument("--quick", action="store_true", help="fewer repeats and a smaller naive batch")
+    ap.add_argument("--json", default=None)
+    a = ap.parse_args()
+    if a.quick:
+        a.repeat, a.naive_batch = 2, 8
+    torch.set_num_threads(a.threads)
+    dev = "cuda" if torch.cuda.is_available() else "cpu"
+    print(f"device {dev}, torch {torch.__version__}, {torch.get_num_threads()} threads")
+    results = []
+    for s1 in a.first_level:
+        npoint = tuple(s1 // 4**i for i in range(4))
+        cfg = ModelConfig(sa_npoint=npoint)
+        model = W2EModel(cfg).eval()
+        for N in a.points:
+            m = bench_map(model, N, a.dirs, a.repeat, naive_queries=3)
+            m["sa_npoint"] = list(npoint)
+            results.append({"map": m})
+            print(f"[map  ] SA {npoint} N={N:5d} K={a.dirs}: {m['pairs']} pairs; encoder "
+                  f"{1e3 * m['encoder_s']:.0f} ms; full map ours {1e3 * m['ours_s']:.0f} ms, "
+                  f"unsplit heads {1e3 * m['unsplit_s']:.0f} ms "
+                  f"(x{m['ratio_unsplit_over_ours']:.1f}), naive "
+                  f"{m['naive_per_query_s']:.3f} s/query -> {m['naive_full_map_s'] / 3600:.1f} h "
+                  f"(x{m['ratio_naive_over_ours']:.0f})")
+            t = bench_train(cfg, N, a.clouds, a.per_cloud, a.naive_batch, a.repeat)
+            t["sa_npoint"] = list(npoint)
+            results.append({"train": t})
+            print(f"[train] SA {npoint} N={N:5d}: ours {t['ours_batch']} "
+                  f"{t['ours_step_s']:.2f} s/step = {t['ours_interactions_per_s']:.0f} "
+                  f"interactions/s; naive {t['naive_batch']} {t['naive_step_s']:.2f} s/step = "
+                  f"{t['naive_interactions_per_s']:.1f} interactions/s "
+                  f"(x{t['ratio_ours_over_naive']:.0f})")
+    if a.json:
+        with open(a.json, "w") as fh:
+            json.dump(results, fh, indent=1)
+
+
+if __name__ == "__main__":
+    main()
