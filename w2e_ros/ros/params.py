@@ -48,7 +48,7 @@ def param(default: Any, description: str, *, read_only: bool = False,
 def _descriptor(name: str, ptype: Parameter.Type, meta: typing.Mapping) -> ParameterDescriptor:
     d = ParameterDescriptor(
         name=name,
-        type=int(ptype),
+        type=ptype.value,
         description=str(meta.get("description", "")),
         read_only=bool(meta.get("read_only", False)),
     )
