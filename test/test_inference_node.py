@@ -1,0 +1,269 @@
+"""The inference node in-process on a private ROS domain: maps, queries, updates, bad input.
+
+A small random-weight model is saved to a tmp checkpoint (the shipped ones may not exist
+yet); the node is pointed at it through its parameters, as the stack YAML would.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+pytest.importorskip("w2e_msgs.msg", reason="w2e_msgs not built: make interfaces")
+
+import torch  # noqa: E402
+from rclpy.executors import MultiThreadedExecutor  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from sensor_msgs.msg import PointCloud2  # noqa: E402
+from std_srvs.srv import Trigger  # noqa: E402
+from w2e_msgs.msg import InteractionOutcome  # noqa: E402
+from w2e_msgs.srv import PredictMaps, UpdateModel  # noqa: E402
+
+from w2e_ros.core.config import ModelConfig  # noqa: E402
+from w2e_ros.core.model import W2EModel, load_model, save_model  # noqa: E402
+from w2e_ros.nodes.inference_node import InferenceNode  # noqa: E402
+from w2e_ros.ros.pointcloud import arrays_to_cloud, cloud_to_arrays, unpack_rgb  # noqa: E402
+from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, shm_files  # noqa: E402
+from w2e_ros.ros.qos import LATCHED_QOS  # noqa: E402
+
+SMALL = ModelConfig(num_points=256, sa_npoint=(64, 16, 8, 4))
+clean_shm_at_exit(shm_files())
+
+
+def box_cloud(n: int = 256, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Points on the front face (z = 0.5) and a side face of a box, with outward normals."""
+    rng = np.random.default_rng(seed)
+    p = rng.uniform(-0.5, 0.5, size=(n, 3)).astype(np.float32)
+    nrm = np.zeros_like(p)
+    front = np.arange(n) < (2 * n) // 3
+    p[front, 2] = 0.5
+    nrm[front, 2] = 1.0
+    p[~front, 0] = 0.5
+    nrm[~front, 0] = 1.0
+    return p, nrm
+
+
+def cloud_msg(n: int = 256, seed: int = 0) -> PointCloud2:
+    p, nrm = box_cloud(n, seed)
+    return arrays_to_cloud(p, nrm, frame_id="world")
+
+
+@pytest.fixture(scope="module")
+def checkpoints(tmp_path_factory) -> dict[str, Path]:
+    d = tmp_path_factory.mktemp("ckpt")
+    out = {}
+    for i, prim in enumerate(("push", "pull")):
+        torch.manual_seed(i)
+        out[prim] = save_model(d / f"{prim}.pt", W2EModel(SMALL), {"method": "w2e",
+                                                                   "combo": "cfw"})
+    return out
+
+
+class _Graph:
+    """The node under test and a client node spinning in a background executor."""
+
+    def __init__(self, overrides: list[Parameter]) -> None:
+        self.ctx = rclpy.Context()
+        rclpy.init(context=self.ctx, domain_id=pick_domain_id(salt=7))
+        self.node = InferenceNode(context=self.ctx, parameter_overrides=overrides)
+        self.client = Node("test_client", context=self.ctx)
+        self.exe = MultiThreadedExecutor(num_threads=2, context=self.ctx)
+        self.exe.add_node(self.node)
+        self.exe.add_node(self.client)
+        self.thread = threading.Thread(target=self.exe.spin, daemon=True)
+        self.thread.start()
+        self.predict = self.client.create_client(PredictMaps, "predict_maps")
+        self.update = self.client.create_client(UpdateModel, "update_model")
+        self.reset = self.client.create_client(Trigger, "reset_model")
+        assert self.predict.wait_for_service(timeout_sec=10.0)
+
+    def call(self, cli, req, timeout: float = 60.0):
+        fut = cli.call_async(req)
+        t0 = time.monotonic()
+        while not fut.done():
+            assert time.monotonic() - t0 < timeout, "service call timed out"
+            time.sleep(0.005)
+        return fut.result()
+
+    def close(self) -> None:
+        self.exe.shutdown()
+        self.node.destroy_node()
+        self.client.destroy_node()
+        rclpy.shutdown(context=self.ctx)
+        self.thread.join(timeout=5.0)
+
+
+@pytest.fixture(scope="module")
+def graph(checkpoints, tmp_path_factory):
+    adapted = tmp_path_factory.mktemp("adapted")
+    g = _Graph([
+        Parameter("push_checkpoint", value=str(checkpoints["push"])),
+        Parameter("pull_checkpoint", value=str(checkpoints["pull"])),
+        Parameter("adapted_dir", value=str(adapted)),
+        Parameter("num_directions", value=4),
+        Parameter("finetune_steps", value=2),
+        Parameter("threads", value=1),
+    ])
+    yield g
+    g.close()
+
+
+def predict_request(msgs: list[PointCloud2], primitive: str = "pull", **kw) -> PredictMaps.Request:
+    return PredictMaps.Request(clouds=msgs, primitive=primitive, seed=3, **kw)
+
+
+def test_maps_cover_every_point_with_probabilities_and_best_actions(graph):
+    res = graph.call(graph.predict, predict_request([cloud_msg(seed=1), cloud_msg(seed=2)],
+                                                    object_ids=[7, 9], num_best=5))
+    assert res.success, res.message
+    assert [m.object_id for m in res.maps] == [7, 9]
+    for m in res.maps:
+        arr = cloud_to_arrays(m.cloud, fields=("affordance", "similarity", "rgb"))
+        assert len(arr.points) == 256 and arr.normals is not None
+        for k in ("affordance", "similarity"):
+            assert np.all((arr.fields[k] >= 0) & (arr.fields[k] <= 1))
+        assert len(m.best_actions) == 5 and len(m.explore_actions) == 5
+        assert list(m.best_scores) == sorted(m.best_scores, reverse=True)
+        assert list(m.explore_scores) == sorted(m.explore_scores)
+        # the best action's score is the map's maximum at its point
+        best = m.best_actions[0]
+        assert best.object_id == m.object_id and best.primitive == "pull"
+        assert m.best_scores[0] == pytest.approx(float(arr.fields["affordance"].max()), abs=1e-6)
+        assert 0.0 <= m.mean_similarity <= 1.0
+
+
+def test_query_scores_equal_the_map_for_the_same_action(graph):
+    """A best action sent back as a query gets the score the map gave it."""
+    msg = cloud_msg(seed=4)
+    res = graph.call(graph.predict, predict_request([msg], num_best=3))
+    pts = cloud_to_arrays(msg).points
+    m = res.maps[0]
+    rows, frames = [], []
+    for a in m.best_actions:
+        p = np.array([a.point.x, a.point.y, a.point.z], np.float32)
+        rows.append(int(np.argmin(np.linalg.norm(pts - p, axis=1))))
+        frames += [a.up.x, a.up.y, a.up.z, a.forward.x, a.forward.y, a.forward.z]
+    q = graph.call(graph.predict, predict_request(
+        [msg], query_cloud=[0] * len(rows), query_point_index=rows, query_frames=frames))
+    assert q.success, q.message
+    np.testing.assert_allclose(q.query_affordances, m.best_scores, atol=1e-4)
+    assert len(q.query_similarities) == len(rows)
+
+
+def test_clouds_of_other_sizes_are_served(graph):
+    res = graph.call(graph.predict, predict_request([cloud_msg(100), cloud_msg(1000)]))
+    assert res.success, res.message
+    assert [cloud_to_arrays(m.cloud).points.shape[0] for m in res.maps] == [100, 1000]
+
+
+@pytest.mark.parametrize("case, words", [
+    ("no_normals", "normal"),
+    ("unknown_primitive", "unknown primitive"),
+    ("nan", "nan"),
+    ("too_few", "at least"),
+    ("bad_query", "6 per query"),
+    ("no_clouds", "no clouds"),
+])
+def test_bad_requests_are_refused_with_a_message(graph, case, words):
+    p, n = box_cloud()
+    req = predict_request([cloud_msg()])
+    if case == "no_normals":
+        req.clouds = [arrays_to_cloud(p, frame_id="world")]
+    elif case == "unknown_primitive":
+        req.primitive = "poke"
+    elif case == "nan":
+        p[3] = np.nan
+        req.clouds = [arrays_to_cloud(p, n)]
+    elif case == "too_few":
+        req.clouds = [arrays_to_cloud(p[:5], n[:5])]
+    elif case == "bad_query":
+        req.query_cloud, req.query_point_index, req.query_frames = [0], [1], [0.0] * 5
+    elif case == "no_clouds":
+        req.clouds = []
+    res = graph.call(graph.predict, req)
+    assert not res.success
+    assert words in res.message.lower()
+    # and the node still answers
+    assert graph.call(graph.predict, predict_request([cloud_msg()])).success
+
+
+def test_heatmap_clouds_are_latched_with_rgb_and_raw_fields(graph):
+    graph.call(graph.predict, predict_request([cloud_msg(seed=5)], object_ids=[3]))
+    got: dict[str, PointCloud2] = {}
+    for topic in ("affordance_map", "similarity_map"):
+        graph.client.create_subscription(PointCloud2, topic,
+                                         lambda m, t=topic: got.__setitem__(t, m), LATCHED_QOS)
+    t0 = time.monotonic()
+    while len(got) < 2 and time.monotonic() - t0 < 10:
+        time.sleep(0.02)
+    assert set(got) == {"affordance_map", "similarity_map"}
+    arr = cloud_to_arrays(got["affordance_map"])
+    assert {"affordance", "similarity", "object_id", "rgb"} <= set(arr.fields)
+    assert np.all(arr.fields["object_id"] == 3)
+    rgb = unpack_rgb(arr.fields["rgb"])
+    hot = int(np.argmax(arr.fields["affordance"]))
+    cold = int(np.argmin(arr.fields["affordance"]))
+    assert rgb[hot, 0] >= rgb[cold, 0]  # hotter = redder
+
+
+def _outcome(success: bool) -> InteractionOutcome:
+    return InteractionOutcome(valid=True, success=success, motion=0.2 if success else 0.0,
+                              joint_motion=[0.2 if success else 0.0], joint_index=0)
+
+
+def test_update_changes_the_model_and_saves_a_checkpoint(graph, checkpoints):
+    msg = cloud_msg(seed=6)
+    before = graph.call(graph.predict, predict_request([msg], num_best=2))
+    acts = list(before.maps[0].explore_actions[:2])
+    res = graph.call(graph.update, UpdateModel.Request(
+        cloud=msg, interactions=acts, outcomes=[_outcome(True), _outcome(False)],
+        category="door", update_affordance=True, save_checkpoint=True))
+    assert res.success, res.message
+    assert res.loss > 0 and Path(res.checkpoint_path).exists()
+    saved, meta = load_model(res.checkpoint_path, "cpu")
+    orig, _ = load_model(checkpoints["pull"], "cpu")
+    diff = max(float((a - b).abs().max()) for a, b in zip(saved.state_dict().values(),
+                                                          orig.state_dict().values(),
+                                                          strict=True))
+    assert diff > 0 and meta["explored"] == 2 and meta["last_category"] == "door"
+    after = graph.call(graph.predict, predict_request([msg], num_best=2))
+    a0 = cloud_to_arrays(before.maps[0].cloud, fields=("similarity",)).fields["similarity"]
+    a1 = cloud_to_arrays(after.maps[0].cloud, fields=("similarity",)).fields["similarity"]
+    assert not np.allclose(a0, a1)
+    # reset reloads the original weights
+    assert graph.call(graph.reset, Trigger.Request()).success
+    again = graph.call(graph.predict, predict_request([msg], num_best=2))
+    a2 = cloud_to_arrays(again.maps[0].cloud, fields=("similarity",)).fields["similarity"]
+    np.testing.assert_allclose(a0, a2, atol=1e-6)
+
+
+def test_bad_updates_are_refused(graph):
+    msg = cloud_msg(seed=8)
+    act = graph.call(graph.predict, predict_request([msg])).maps[0].best_actions[0]
+    far = type(act)(object_id=0, point=act.point, up=act.up, forward=act.forward,
+                    primitive="pull")
+    far.point.x += 3.0
+    cases = [
+        (UpdateModel.Request(cloud=msg, interactions=[act], outcomes=[]), "same number"),
+        (UpdateModel.Request(cloud=msg, interactions=[far], outcomes=[_outcome(True)]), "from"),
+    ]
+    for req, words in cases:
+        res = graph.call(graph.update, req)
+        assert not res.success and words in res.message
+
+
+def test_missing_checkpoint_is_reported_not_fatal(tmp_path):
+    g = _Graph([Parameter("push_checkpoint", value=str(tmp_path / "none.pt")),
+                Parameter("pull_checkpoint", value=str(tmp_path / "none.pt")),
+                Parameter("threads", value=1)])
+    try:
+        res = g.call(g.predict, predict_request([cloud_msg()], primitive="push"))
+        assert not res.success and "no push model" in res.message
+    finally:
+        g.close()

@@ -1,0 +1,432 @@
+"""Inference node: owns the Where2Explore models (one per base primitive) and serves them.
+
+* ``predict_maps`` (w2e_msgs/PredictMaps): affordance + similarity of every point x K sampled
+  gripper frames of each object cloud (one encoder pass per cloud, the split heads of the core
+  model), the best and the least familiar actions, and optionally the scores of given actions
+  (the planner's exploration candidates).
+* ``update_model`` (w2e_msgs/UpdateModel): fine-tunes on executed interactions with the core's
+  ``W2EExplorer.update`` (everything explored so far + replay of the training data when a
+  replay collection is configured) and saves the adapted checkpoint, so nothing learned is
+  lost if a node dies mid-exploration.
+* ``reset_model`` (std_srvs/Trigger): reload the checkpoints, forget the explored interactions.
+* ``affordance_map`` / ``similarity_map`` (sensor_msgs/PointCloud2, reliable + transient
+  local): the last maps as heat-coloured clouds (``rgb``) with the raw ``affordance``,
+  ``similarity`` and ``object_id`` fields.
+
+Bad input (malformed cloud, unknown primitive, missing checkpoint) answers success=false with
+a message; the node never dies of a request.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import rclpy
+import torch
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from sensor_msgs.msg import PointCloud2
+from std_srvs.srv import Trigger
+from w2e_msgs.msg import AffordanceMap, Interaction
+from w2e_msgs.srv import PredictMaps, UpdateModel
+
+from sim_bridge.types import PRIMITIVES, Action
+from w2e_ros.core.actions import BASE_PRIMITIVES, sample_forward, sample_up
+from w2e_ros.core.config import ExploreConfig
+from w2e_ros.core.explore import Candidates, W2EExplorer
+from w2e_ros.core.model import W2EModel, default_device, load_model, save_model
+from w2e_ros.core.pointcloud import check_cloud, fps_indices
+from w2e_ros.paths import default_checkpoint
+from w2e_ros.ros.conversions import (
+    action_to_interaction,
+    interaction_to_action,
+    outcome_to_trial_result,
+)
+from w2e_ros.ros.params import declare_typed_parameters, describe, param
+from w2e_ros.ros.pointcloud import (
+    CloudFormatError,
+    arrays_to_cloud,
+    cloud_to_arrays,
+    heatmap_rgb,
+)
+from w2e_ros.ros.qos import LATCHED_QOS
+
+
+@dataclass
+class InferenceSettings:
+    """Parameters of the inference node (config/w2e_stack.yaml: ``inference_node``)."""
+
+    push_checkpoint: str = param("", "push model checkpoint ('': shipped checkpoints/"
+                                     "w2e_cfw_push.pt)")
+    pull_checkpoint: str = param("", "pull model checkpoint ('': shipped checkpoints/"
+                                     "w2e_cfw_pull.pt)")
+    adapted_dir: str = param("~/.ros/w2e_adapted", "directory the fine-tuned checkpoints are "
+                             "written to (w2e_adapted_<primitive>.pt)")
+    load_adapted: bool = param(False, "start from the adapted checkpoint in adapted_dir when "
+                               "one exists (resume after a restart)")
+    replay_data: str = param("", "collection directory (w2e collect --out) replayed while "
+                             "fine-tuning ('': no replay)")
+    combo: str = param("cfw", "training combination, for the replay roles (C_aff, C_sim) "
+                       "when the checkpoint does not say")
+    num_directions: int = param(16, "gripper frames sampled per point for the maps", min=1,
+                                max=256)
+    num_best: int = param(8, "best / least familiar actions returned per object", min=1,
+                          max=1000)
+    finetune_steps: int = param(8, "gradient steps per update_model call", min=1, max=1000)
+    finetune_lr: float = param(1e-3, "Adam learning rate of the fine-tuning", min=0.0)
+    replay_fraction: float = param(0.01, "share of the training interactions replayed",
+                                   min=0.0, max=1.0)
+    threads: int = param(2, "torch CPU threads", min=1, max=256)
+    publish_maps: bool = param(True, "publish affordance_map / similarity_map clouds")
+    seed: int = param(0, "seed of the node's direction sampling and replay")
+
+
+def base_primitive(primitive: str) -> str:
+    """push-left -> push; raises ValueError for names the stack does not know."""
+    if primitive not in PRIMITIVES:
+        raise ValueError(f"unknown primitive {primitive!r}; expected one of "
+                         f"{', '.join(PRIMITIVES)}")
+    return primitive.split("-")[0]
+
+
+class _Explorer(W2EExplorer):
+    """The core's explorer plus UpdateModel's per-interaction ``update_affordance`` flag:
+    interactions sent with it false train only the similarity head (as C_sim categories)."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.aff_flags: list[bool] = []
+
+    def _explored_batch(self):
+        batch = super()._explored_batch()
+        batch.aff_mask = torch.as_tensor(self.aff_flags, dtype=torch.bool, device=self.device)
+        return batch
+
+
+@dataclass
+class _Served:
+    """One loaded model and the state of its few-shot adaptation."""
+
+    primitive: str
+    source: Path
+    model: W2EModel
+    meta: dict
+    explorer: _Explorer
+    updates: int = 0
+
+
+@dataclass
+class _Cloud:
+    points: np.ndarray  # (N, 3) float32
+    normals: np.ndarray  # (N, 3) float32
+
+
+def _features(model: W2EModel, cloud: _Cloud, seed: int) -> torch.Tensor:
+    """(N, F) per-point features with one encoder pass. Clouds of another size than the
+    model's are FPS-sampled / padded for the encoder and read back at every original point."""
+    n, m = len(cloud.points), model.cfg.num_points
+    idx = np.arange(n) if n == m else fps_indices(cloud.points, m, seed=seed)
+    pts = torch.from_numpy(np.ascontiguousarray(cloud.points[idx], dtype=np.float32))
+    feats = model.encode(pts[None].to(model.device))[0]  # (m, F)
+    if n <= m:  # fps_indices pads by repetition after arange(n): rows 0..n-1 are the points
+        return feats[:n]
+    from scipy.spatial import cKDTree
+
+    _, nearest = cKDTree(cloud.points[idx]).query(cloud.points)
+    return feats[torch.from_numpy(np.asarray(nearest, dtype=np.int64)).to(feats.device)]
+
+
+class InferenceNode(Node):
+    """Serves predict_maps / update_model / reset_model over the core model."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__("inference_node", **kwargs)
+        self.settings = declare_typed_parameters(self, InferenceSettings)
+        s = self.settings
+        torch.set_num_threads(s.threads)
+        self.device = default_device()
+        self.rng = np.random.default_rng(s.seed)
+        self.lock = threading.Lock()  # model state: one request at a time
+        self.served: dict[str, _Served] = {}
+        self.load_errors: dict[str, str] = {}
+        self._load_all()
+        self.aff_pub = self.create_publisher(PointCloud2, "affordance_map", LATCHED_QOS)
+        self.sim_pub = self.create_publisher(PointCloud2, "similarity_map", LATCHED_QOS)
+        self.create_service(PredictMaps, "predict_maps", self.on_predict_maps)
+        self.create_service(UpdateModel, "update_model", self.on_update_model)
+        self.create_service(Trigger, "reset_model", self.on_reset)
+        self.get_logger().info(
+            f"serving {sorted(self.served) or 'no model'} on {self.device}; {describe(s)}")
+
+    # --- models -----------------------------------------------------------------------------
+    def _checkpoint(self, primitive: str) -> Path:
+        s = self.settings
+        explicit = s.push_checkpoint if primitive == "push" else s.pull_checkpoint
+        adapted = self.adapted_path(primitive)
+        if s.load_adapted and adapted.exists():
+            return adapted
+        return Path(explicit).expanduser() if explicit else default_checkpoint(primitive)
+
+    def adapted_path(self, primitive: str) -> Path:
+        return Path(self.settings.adapted_dir).expanduser() / f"w2e_adapted_{primitive}.pt"
+
+    def _load_all(self) -> None:
+        for prim in BASE_PRIMITIVES:
+            try:
+                self.served[prim] = self._load(prim)
+            except (OSError, ValueError, KeyError, RuntimeError) as exc:
+                self.served.pop(prim, None)
+                self.load_errors[prim] = f"{type(exc).__name__}: {exc}"
+                self.get_logger().error(f"no {prim} model: {exc}")
+
+    def _load(self, primitive: str) -> _Served:
+        from w2e_ros.core.train import load_training_data, method_categories
+
+        s = self.settings
+        path = self._checkpoint(primitive)
+        model, meta = load_model(path, self.device)
+        method, combo = str(meta.get("method", "w2e")), str(meta.get("combo", s.combo))
+        aff_cats, sim_cats = method_categories(method, combo)
+        replay = None
+        if s.replay_data:
+            replay = load_training_data(Path(s.replay_data).expanduser(), method, combo,
+                                        primitive)
+        cfg = ExploreConfig(finetune_steps=s.finetune_steps, finetune_lr=s.finetune_lr,
+                            replay_fraction=s.replay_fraction, seed=s.seed)
+        explorer = _Explorer(model, cfg, replay=replay, aff_categories=aff_cats,
+                             sim_categories=sim_cats, train_similarity=True, seed=s.seed)
+        self.load_errors.pop(primitive, None)
+        self.get_logger().info(
+            f"{primitive}: {path} ({method}/{combo}, replay "
+            f"{0 if explorer.replay is None else explorer.replay.num_interactions} interactions)")
+        return _Served(primitive, path, model, meta, explorer)
+
+    def _served_for(self, primitive: str) -> _Served:
+        base = base_primitive(primitive)
+        if base not in self.served:
+            raise ValueError(f"no {base} model loaded: {self.load_errors.get(base, 'unknown')}")
+        return self.served[base]
+
+    # --- predict_maps -----------------------------------------------------------------------
+    def on_predict_maps(self, req: PredictMaps.Request,
+                        res: PredictMaps.Response) -> PredictMaps.Response:
+        t0 = time.perf_counter()
+        try:
+            with self.lock:
+                self._predict(req, res)
+            res.success = True
+            res.message = (f"{len(res.maps)} map(s), {len(res.query_affordances)} queries in "
+                           f"{time.perf_counter() - t0:.3f} s")
+        except (ValueError, CloudFormatError, IndexError) as exc:
+            res.success, res.message = False, str(exc)
+            res.maps = []
+            self.get_logger().warning(f"predict_maps refused: {exc}")
+        except Exception as exc:  # noqa: BLE001 - a request must not kill the node
+            res.success, res.message = False, f"internal error: {type(exc).__name__}: {exc}"
+            res.maps = []
+            self.get_logger().error(f"predict_maps failed: {exc!r}")
+        return res
+
+    def _read_clouds(self, msgs: list[PointCloud2]) -> list[_Cloud]:
+        clouds = []
+        for i, msg in enumerate(msgs):
+            try:
+                arr = cloud_to_arrays(msg, require_normals=True, fields=())
+                check_cloud(arr.points, arr.normals)
+            except (CloudFormatError, ValueError) as exc:
+                raise ValueError(f"cloud {i}: {exc}") from exc
+            nrm = arr.normals / np.maximum(np.linalg.norm(arr.normals, axis=1, keepdims=True),
+                                           1e-9)
+            clouds.append(_Cloud(arr.points.astype(np.float32), nrm.astype(np.float32)))
+        return clouds
+
+    @torch.no_grad()
+    def _predict(self, req: PredictMaps.Request, res: PredictMaps.Response) -> None:
+        s = self.settings
+        served = self._served_for(req.primitive)
+        if not req.clouds:
+            raise ValueError("no clouds in the request")
+        ids = list(req.object_ids) or list(range(len(req.clouds)))
+        if len(ids) != len(req.clouds):
+            raise ValueError(f"{len(ids)} object ids for {len(req.clouds)} clouds")
+        clouds = self._read_clouds(list(req.clouds))
+        qc = np.asarray(req.query_cloud, dtype=np.int64)
+        qp = np.asarray(req.query_point_index, dtype=np.int64)
+        qf = np.asarray(req.query_frames, dtype=np.float32)
+        if not (len(qc) == len(qp) and qf.size == 6 * len(qc)):
+            raise ValueError(f"queries: {len(qc)} clouds, {len(qp)} points, {qf.size} frame "
+                             "values (need 6 per query)")
+        qf = qf.reshape(-1, 6)
+        if len(qc) and (qc.max() >= len(clouds) or qc.min() < 0):
+            raise ValueError(f"query_cloud out of range (0..{len(clouds) - 1})")
+        k = int(req.num_directions) or s.num_directions
+        nbest = int(req.num_best) or s.num_best
+        rng = np.random.default_rng(req.seed) if req.seed else self.rng
+        model = served.model
+        model.eval()
+        q_aff = np.zeros(len(qc), np.float32)
+        q_sim = np.zeros(len(qc), np.float32)
+        frame = req.clouds[0].header.frame_id
+        for c, (cloud, oid, msg) in enumerate(zip(clouds, ids, req.clouds, strict=True)):
+            feats = _features(model, cloud, seed=int(req.seed))  # (N, F)
+            rows = np.flatnonzero(qc == c)
+            if len(rows):
+                pi = qp[rows]
+                if pi.max() >= len(cloud.points) or pi.min() < 0:
+                    raise ValueError(f"query_point_index out of range for cloud {c} "
+                                     f"({len(cloud.points)} points)")
+                a = torch.from_numpy(qf[rows]).to(model.device)
+                logit, sim = model.heads(feats[torch.from_numpy(pi).to(model.device)], a)
+                q_aff[rows] = torch.sigmoid(logit).cpu().numpy()
+                q_sim[rows] = sim.cpu().numpy()
+            res.maps.append(self._map(model, feats, cloud, k, nbest, rng, int(oid),
+                                      req.primitive, msg))
+        res.query_affordances = q_aff.tolist()
+        res.query_similarities = q_sim.tolist()
+        if s.publish_maps:
+            self._publish(res.maps, frame)
+
+    def _map(self, model: W2EModel, feats: torch.Tensor, cloud: _Cloud, k: int, nbest: int,
+             rng: np.random.Generator, object_id: int, primitive: str,
+             msg: PointCloud2) -> AffordanceMap:
+        """All points x k sampled frames -> per-point maps and the extreme actions."""
+        n = len(cloud.points)
+        pidx = np.repeat(np.arange(n), k)  # point-major (n * k,)
+        up = sample_up(cloud.normals[pidx], rng)
+        fwd = sample_forward(up, rng)
+        acts = torch.from_numpy(np.concatenate([up, fwd], axis=1).reshape(n, k, 6))
+        logit, sim = model.score_map(feats[None], acts[None].to(model.device))
+        aff = torch.sigmoid(logit)[0].reshape(-1).cpu().numpy()  # (n * k,)
+        sim = sim[0].reshape(-1).cpu().numpy()
+        point_aff = aff.reshape(n, k).max(axis=1)
+        point_sim = sim.reshape(n, k).mean(axis=1)
+        cand = Candidates(pidx, up, fwd)
+
+        def actions(order: np.ndarray) -> list[Interaction]:
+            return [action_to_interaction(cand.action(cloud, int(i), primitive), object_id)
+                    for i in order]
+
+        best = np.argsort(-aff, kind="stable")[:nbest]
+        least = np.argsort(sim, kind="stable")[:nbest]
+        out = AffordanceMap(header=msg.header, object_id=object_id, primitive=primitive)
+        out.cloud = arrays_to_cloud(
+            cloud.points, cloud.normals,
+            fields={"affordance": point_aff.astype(np.float32),
+                    "similarity": point_sim.astype(np.float32)},
+            rgb=heatmap_rgb(point_aff), header=msg.header)
+        out.best_actions, out.best_scores = actions(best), aff[best].tolist()
+        out.explore_actions, out.explore_scores = actions(least), sim[least].tolist()
+        out.mean_similarity = float(sim.mean())
+        return out
+
+    def _publish(self, maps: list[AffordanceMap], frame: str) -> None:
+        """One cloud per topic holding every object of the request, for RViz."""
+        pts, aff, sim, oid = [], [], [], []
+        for m in maps:
+            a = cloud_to_arrays(m.cloud, fields=("affordance", "similarity"))
+            pts.append(a.points)
+            aff.append(a.fields["affordance"])
+            sim.append(a.fields["similarity"])
+            oid.append(np.full(len(a.points), m.object_id, np.uint32))
+        p, a, s, o = (np.concatenate(x) for x in (pts, aff, sim, oid))
+        stamp = self.get_clock().now().to_msg()
+        fields = {"affordance": a, "similarity": s, "object_id": o}
+        self.aff_pub.publish(arrays_to_cloud(p, fields=fields, rgb=heatmap_rgb(a),
+                                             frame_id=frame, stamp=stamp))
+        self.sim_pub.publish(arrays_to_cloud(p, fields=fields, rgb=heatmap_rgb(s),
+                                             frame_id=frame, stamp=stamp))
+
+    # --- update_model -----------------------------------------------------------------------
+    def on_update_model(self, req: UpdateModel.Request,
+                        res: UpdateModel.Response) -> UpdateModel.Response:
+        t0 = time.perf_counter()
+        try:
+            with self.lock:
+                self._update(req, res)
+            res.success = True
+            res.message = (f"fine-tuned on {len(req.interactions)} interaction(s) in "
+                           f"{time.perf_counter() - t0:.2f} s" +
+                           (f", saved {res.checkpoint_path}" if res.checkpoint_path else ""))
+            self.get_logger().info(res.message)
+        except (ValueError, CloudFormatError) as exc:
+            res.success, res.message = False, str(exc)
+            self.get_logger().warning(f"update_model refused: {exc}")
+        except Exception as exc:  # noqa: BLE001 - a request must not kill the node
+            res.success, res.message = False, f"internal error: {type(exc).__name__}: {exc}"
+            self.get_logger().error(f"update_model failed: {exc!r}")
+        return res
+
+    def _update(self, req: UpdateModel.Request, res: UpdateModel.Response) -> None:
+        n = len(req.interactions)
+        if n == 0 or n != len(req.outcomes):
+            raise ValueError(f"need the same number (> 0) of interactions and outcomes; got "
+                             f"{n} and {len(req.outcomes)}")
+        actions: list[Action] = [interaction_to_action(i) for i in req.interactions]
+        bases = {base_primitive(a.primitive) for a in actions}
+        if len(bases) != 1:
+            raise ValueError(f"interactions mix primitives {sorted(bases)}: one model per call")
+        served = self._served_for(actions[0].primitive)
+        (cloud,) = self._read_clouds([req.cloud])
+        ex = served.explorer
+        steps = int(req.steps) or self.settings.finetune_steps
+        base_cfg = ex.cfg
+        stats: dict[str, float] = {}
+        try:
+            for j, (action, outcome) in enumerate(zip(actions, req.outcomes, strict=True)):
+                d = np.linalg.norm(cloud.points - action.point[None].astype(np.float32), axis=1)
+                pi = int(np.argmin(d))
+                if d[pi] > 0.05:
+                    raise ValueError(f"interaction {j}: contact point is {d[pi]:.3f} m from "
+                                     "the nearest cloud point (wrong cloud or frame?)")
+                cand = Candidates(np.array([pi]), action.up[None].astype(np.float32),
+                                  action.forward[None].astype(np.float32))
+                # train once, after the last interaction is added (the core trains on all
+                # explored so far); earlier ones are only remembered
+                ex.cfg = dataclasses.replace(base_cfg, finetune_steps=steps if j == n - 1 else 0)
+                ex.aff_flags.append(bool(req.update_affordance))
+                stats = ex.update(cloud, cand, 0, outcome_to_trial_result(outcome))
+        finally:
+            ex.cfg = base_cfg
+        served.updates += 1
+        res.loss = float(stats.get("loss", 0.0))
+        res.affordance_loss = float(stats.get("loss_aff", 0.0))
+        res.similarity_loss = float(stats.get("loss_sim", 0.0))
+        if req.save_checkpoint:
+            meta = dict(served.meta, adapted_from=str(served.source),
+                        explored=len(ex.explored), updates=served.updates,
+                        last_category=req.category)
+            res.checkpoint_path = str(save_model(self.adapted_path(served.primitive),
+                                                 served.model, meta))
+
+    # --- reset_model ------------------------------------------------------------------------
+    def on_reset(self, req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
+        with self.lock:
+            self._load_all()
+        res.success = bool(self.served)
+        res.message = (f"reloaded {sorted(self.served)}" +
+                       (f"; errors: {self.load_errors}" if self.load_errors else ""))
+        return res
+
+
+def main(args: list[str] | None = None) -> None:
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = InferenceNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    main()
+
