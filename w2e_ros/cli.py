@@ -32,6 +32,10 @@ def _add_collect(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--num-points", type=int, default=2048, help="points per stored cloud")
     p.add_argument("--movable-fraction", type=float, default=0.8,
                    help="share of contact points drawn on movable parts (ground-truth mask)")
+    p.add_argument("--grasp-fraction", type=float, default=0.5,
+                   help="share of movable contacts on protruding geometry (handles, edges)")
+    p.add_argument("--cone-fraction", type=float, default=0.5,
+                   help="share of approach directions within 30 deg of the inward normal")
     p.add_argument("--workers", type=int, default=2, help="parallel worker processes")
     p.add_argument("--obs-per-shard", type=int, default=8)
     p.add_argument("--seed", type=int, default=0)
@@ -44,7 +48,8 @@ def _run_collect(a: argparse.Namespace) -> int:
     cfg = CollectConfig(
         out=a.out, categories=a.categories, split=a.split, observations=a.observations,
         interactions=a.interactions, primitives=tuple(a.primitives), num_points=a.num_points,
-        movable_fraction=a.movable_fraction, workers=a.workers, obs_per_shard=a.obs_per_shard,
+        movable_fraction=a.movable_fraction, grasp_fraction=a.grasp_fraction,
+        cone_fraction=a.cone_fraction, workers=a.workers, obs_per_shard=a.obs_per_shard,
         seed=a.seed)
     summary = collect(cfg)
     print(summary.table())

@@ -32,6 +32,17 @@ def sample_up(normals: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return d.astype(np.float32)
 
 
+def sample_up_cone(normals: np.ndarray, max_deg: float, rng: np.random.Generator) -> np.ndarray:
+    """Approach directions within ``max_deg`` of the inward normal (uniform over the cap)."""
+    normals = _unit(np.asarray(normals, dtype=np.float64).reshape(-1, 3))
+    side = rng.normal(size=normals.shape)
+    side = _unit(side - np.sum(side * normals, axis=1, keepdims=True) * normals)
+    cos_max = np.cos(np.deg2rad(max_deg))
+    cos = 1.0 - rng.random(len(normals)) * (1.0 - cos_max)
+    sin = np.sqrt(np.maximum(0.0, 1.0 - cos**2))
+    return (-normals * cos[:, None] + side * sin[:, None]).astype(np.float32)
+
+
 def sample_forward(up: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """A uniformly random unit vector perpendicular to each ``up`` (the gripper's roll)."""
     up = _unit(np.asarray(up, dtype=np.float64).reshape(-1, 3))

@@ -4,6 +4,13 @@ Work is cut into chunks of observations; chunk ``i`` always holds the same objec
 states and seeds whatever the number of workers, and is written as ``shard-i.npz`` only
 when complete. Re-running the same command skips the chunks already on disk, so an
 interrupted collection resumes where it stopped and the same seed gives the same data.
+
+Random interactions rarely succeed (a pull only works where the fingers can close on
+something), so contact proposals are biased the way Where2Act's collection is, and a bit
+further: most contacts lie on movable parts (ground-truth mask), half of those on the
+protruding tenth of them (handles, knobs, free edges), and half of the approach directions
+lie within 30 deg of the inward normal; the rest is uniform over the hemisphere. The
+fractions are flags of ``w2e collect`` and are stored with every shard.
 """
 
 from __future__ import annotations
@@ -21,9 +28,10 @@ import numpy as np
 from tqdm import tqdm
 
 from sim_bridge.types import Action
-from w2e_ros.core.actions import sample_forward, sample_up
+from w2e_ros.core.actions import sample_forward, sample_up, sample_up_cone
 from w2e_ros.core.categories import load_categories
 from w2e_ros.core.data import InteractionData
+from w2e_ros.core.pointcloud import protrusion
 from w2e_ros.core.sim_world import SimWorld, Target, stable_seed
 
 log = logging.getLogger("w2e.collect")
@@ -38,7 +46,10 @@ class CollectConfig:
     interactions: int = 24  # per observation and primitive
     primitives: tuple[str, ...] = ("push", "pull")
     num_points: int = 2048
-    movable_fraction: float = 0.8
+    movable_fraction: float = 0.8  # contacts on movable parts (ground-truth mask)
+    grasp_fraction: float = 0.5  # of those, on protruding geometry (handles, edges)
+    cone_fraction: float = 0.5  # approach within cone_deg of the inward normal, else uniform
+    cone_deg: float = 30.0
     workers: int = 2
     obs_per_shard: int = 8
     seed: int = 0
@@ -114,13 +125,23 @@ def _collect_observation(cfg: CollectConfig, category: str, instance: int,
     cloud = _WORLD.observe(target)
     rng = np.random.default_rng(stable_seed("actions", obs_seed))
     movable_idx = np.flatnonzero(cloud.movable)
+    # the tenth of the movable points that stands out most: handles, knobs, free edges
+    height = protrusion(cloud.points, cloud.normals)
+    grasp_idx = movable_idx[np.argsort(-height[movable_idx])[: max(1, movable_idx.size // 10)]]
     rows: dict[str, list] = defaultdict(list)
     for prim in cfg.primitives:
         for _ in range(cfg.interactions):
             on_movable = movable_idx.size and rng.random() < cfg.movable_fraction
-            pool = movable_idx if on_movable else np.arange(len(cloud.points))
+            if not on_movable:
+                pool = np.arange(len(cloud.points))
+            else:
+                pool = grasp_idx if rng.random() < cfg.grasp_fraction else movable_idx
             pidx = int(rng.choice(pool))
-            up = sample_up(cloud.normals[pidx][None], rng)[0]
+            normal = cloud.normals[pidx][None]
+            if rng.random() < cfg.cone_fraction:
+                up = sample_up_cone(normal, cfg.cone_deg, rng)[0]
+            else:
+                up = sample_up(normal, rng)[0]
             fwd = sample_forward(up[None], rng)[0]
             trial_seed = int(rng.integers(0, 2**31 - 1))
             action = Action(point=cloud.points[pidx].astype(np.float64), up=up.astype(np.float64),

@@ -169,9 +169,9 @@ class InteractionData:
 
     @staticmethod
     def load(directory: str | Path) -> InteractionData:
-        """All shards of a collection directory, in name order."""
+        """All shards under a directory (sub-collections included), in path order."""
         directory = Path(directory)
-        shards = sorted(directory.glob("shard-*.npz"))
+        shards = sorted(directory.rglob("shard-*.npz"))
         shards = [s for s in shards if not s.name.endswith(".tmp.npz")]
         if not shards:
             raise FileNotFoundError(

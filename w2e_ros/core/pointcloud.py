@@ -41,3 +41,17 @@ def check_cloud(points: np.ndarray, normals: np.ndarray | None = None) -> None:
             raise ValueError(f"normals {normals.shape} do not match points {points.shape}")
         if not np.isfinite(normals).all():
             raise ValueError("normals contain NaN or infinite values")
+
+
+def protrusion(points: np.ndarray, normals: np.ndarray, k: int = 32) -> np.ndarray:
+    """(N,) how far each point stands out of its neighbourhood along its own normal.
+
+    Handles, knobs, levers and free edges stand out; flat boards do not. The collector uses it
+    to propose contacts where a gripper can actually grasp something.
+    """
+    from scipy.spatial import cKDTree
+
+    k = min(k, len(points))
+    _, nb = cKDTree(points).query(points, k=k)
+    centre = np.median(points[nb], axis=1)
+    return np.einsum("ij,ij->i", points - centre, normals).astype(np.float32)
