@@ -163,3 +163,23 @@ def test_train_writes_checkpoint_metrics_and_resumes(tmp_path, data):
     train(_cfg(steps=6), tmp_path / "data", out, resume=True, progress=False, model_cfg=SMALL)
     lines = [json.loads(s) for s in (out / "metrics.jsonl").read_text().splitlines()]
     assert [r["step"] for r in lines] == [2, 4, 6]
+
+
+@pytest.mark.slow
+def test_training_on_simulated_interactions_reduces_the_loss(tmp_path):
+    from w2e_ros.core.collect import CollectConfig, collect
+
+    collect(CollectConfig(out=str(tmp_path / "data"), categories=["cabinet", "faucet", "window"],
+                          observations=2, interactions=24, primitives=("push",), workers=1))
+    from w2e_ros.core.train import load_training_data
+
+    data = load_training_data(tmp_path / "data", "w2e", "cfw", "push")
+    assert data.points.shape[1:] == (2048, 3) and data.success.any()
+    trainer = Trainer(_cfg(clouds_per_batch=3, interactions_per_cloud=16), data, device=CPU)
+    batch = trainer.next_batch()
+    assert batch.aff_mask.any() and (~batch.aff_mask).any()  # C_aff and other C_sim clouds
+    first = trainer.train_step(batch)
+    for _ in range(15):
+        last = trainer.train_step(batch)
+    assert last["loss_aff"] < 0.7 * first["loss_aff"]
+    assert last["loss"] < first["loss"]
