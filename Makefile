@@ -45,7 +45,7 @@ interfaces: $(STAMP)/interfaces
 
 # --- this package (editable) + ROS layout (share/, lib/<pkg>/ executables, ament index) ---
 $(STAMP)/package: setup.py package.xml $(STAMP)/python
-	$(PIP) install -q --no-deps --no-build-isolation -e .
+	$(PIP) install -q --no-deps --no-build-isolation --config-settings editable_mode=compat -e .
 	@# the layout ROS tools expect in the prefix: share/<pkg>, lib/<pkg>/<executables>, ament index
 	@mkdir -p $(VENV)/share/w2e_ros $(VENV)/lib/w2e_ros $(VENV)/share/ament_index/resource_index/packages
 	@touch $(VENV)/share/ament_index/resource_index/packages/w2e_ros
