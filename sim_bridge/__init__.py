@@ -4,3 +4,9 @@ ROS-free: procedural articulated objects (``objects``), the PartNet-Mobility loa
 (``urdf_loader``), the flying gripper and push/pull primitives (``physics``, ``world``) and the
 camera (``camera``). ``bridge_node`` puts it behind the robot's topics, services and actions.
 """
+
+import warnings
+
+# SAPIEN warns at import when the machine has no system Vulkan; the physics-only scenes and
+# the ray-cast camera used by default never need it.
+warnings.filterwarnings("ignore", message="Failed to find system libvulkan")
