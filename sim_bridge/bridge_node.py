@@ -1,0 +1,374 @@
+"""The simulator as the robot and the camera: the ROS face of the SAPIEN world.
+
+It stands in for the Kinect and the Panda over the interfaces real hardware adapters would
+offer:
+
+* ``camera/points`` (sensor_msgs/PointCloud2, sensor-data QoS): the ray-cast camera cloud
+  of the whole scene (objects and the table), with normals and the ground-truth
+  ``object_id`` of every point (0 = table). Frame: ``world`` (parameter ``frame_id``), the
+  fixed frame of the whole stack, so no TF tree is needed; the camera's own pose changes
+  nothing downstream.
+* ``object_joint_states`` (sensor_msgs/JointState, reliable): joint positions of every
+  object, names ``<object id>/<joint>``.
+* ``load_scene`` (w2e_msgs/LoadScene): put objects on the table (several at once: five
+  mugs side by side), each in a given or sampled start state.
+* ``follow_waypoints`` (w2e_msgs/FollowWaypoints action): the robot side. The simulated
+  flying gripper executes whole primitives, so the waypoints are mapped back to the
+  primitive they encode (anything else is refused with a clear message), the trial runs in
+  a fresh physics scene from the current joint state, and the object keeps the state the
+  trial left it in.
+"""
+
+from __future__ import annotations
+
+import threading
+import zlib
+from dataclasses import dataclass
+
+import numpy as np
+import rclpy
+from rclpy.action import ActionServer, CancelResponse, GoalResponse
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
+from sensor_msgs.msg import JointState, PointCloud2
+from w2e_msgs.action import FollowWaypoints
+from w2e_msgs.msg import SceneObject
+from w2e_msgs.srv import LoadScene
+
+from sim_bridge.camera import PosedMesh, make_camera, view_pose
+from sim_bridge.geometry import box_mesh, make_pose, transform_points
+from sim_bridge.objects import make_object
+from sim_bridge.objects.model import ObjectModel
+from sim_bridge.world import ObjectWorld
+from w2e_ros.ros.conversions import from_pose, to_pose, to_vector3
+from w2e_ros.ros.params import declare_typed_parameters, describe, param
+from w2e_ros.ros.pointcloud import arrays_to_cloud
+from w2e_ros.ros.qos import RELIABLE_QOS, SENSOR_QOS
+from w2e_ros.ros.waypoints import action_from_waypoints
+
+TABLE_ID = 0  # object_id of table points in the camera cloud
+
+
+@dataclass
+class BridgeSettings:
+    """Parameters of the sim_bridge node (config/w2e_stack.yaml, section sim_bridge)."""
+
+    frame_id: str = param("world", "frame of the published clouds and of the waypoints")
+    publish_rate_hz: float = param(2.0, "camera cloud rate (Hz); 0: publish only on change",
+                                   min=0.0)
+    max_points: int = param(30000, "random subset of the camera hits to publish (0: all)",
+                            min=0)
+    camera_azimuth_deg: float = param(30.0, "camera azimuth around +x (objects face +x)")
+    camera_elevation_deg: float = param(30.0, "camera elevation above the table")
+    camera_distance: float = param(
+        0.0, "camera distance from the scene centre (0: 5 units, or farther so all fit)",
+        min=0.0)
+    table: bool = param(True, "add a table under the objects (its points have object_id 0)")
+    layout_gap: float = param(0.3, "gap between objects laid out side by side (m)", min=0.0)
+    initial_scene: list[str] = param(
+        [], "objects loaded at start-up, 'category:instance[:seed]' each")
+    seed: int = param(0, "seed of the cloud subsampling")
+
+
+@dataclass
+class _SceneObject:
+    """One object in the scene: its id, model, placement and current joint state."""
+
+    id: int
+    model: ObjectModel
+    pose: np.ndarray  # (4, 4) base pose in the world
+    qpos: np.ndarray  # (J,) current joint positions
+    seed: int
+
+
+class SimBridgeNode(Node):
+    """Serves the simulated scene: camera cloud, scene loading, waypoint following."""
+
+    def __init__(self) -> None:
+        super().__init__("sim_bridge")
+        self.settings = declare_typed_parameters(self, BridgeSettings)
+        self.get_logger().info(f"settings: {describe(self.settings)}")
+        self._lock = threading.Lock()  # guards the scene: camera vs. trials vs. loading
+        self._objects: list[_SceneObject] = []
+        self._next_id = 1
+        self._world: ObjectWorld | None = None
+        self._camera = None
+        self._rng = np.random.default_rng(self.settings.seed)
+        self._dirty = True
+
+        sensor_group = MutuallyExclusiveCallbackGroup()
+        command_group = MutuallyExclusiveCallbackGroup()
+        self._cloud_pub = self.create_publisher(PointCloud2, "camera/points", SENSOR_QOS)
+        self._joints_pub = self.create_publisher(JointState, "object_joint_states", RELIABLE_QOS)
+        self.create_service(LoadScene, "load_scene", self._on_load_scene,
+                            callback_group=command_group)
+        self._action = ActionServer(
+            self, FollowWaypoints, "follow_waypoints", execute_callback=self._on_follow,
+            goal_callback=lambda _goal: GoalResponse.ACCEPT,
+            cancel_callback=lambda _goal: CancelResponse.REJECT,  # a trial is atomic
+            callback_group=command_group)
+        period = 1.0 / self.settings.publish_rate_hz if self.settings.publish_rate_hz > 0 else 0.5
+        self.create_timer(period, self._on_camera_timer, callback_group=sensor_group)
+
+        if self.settings.initial_scene:
+            entries = [self._parse_entry(s) for s in self.settings.initial_scene]
+            ok, _, _, msg = self.load(entries, clear=True)
+            log = self.get_logger().info if ok else self.get_logger().error
+            log(f"initial scene: {msg}")
+
+    # -- scene ----------------------------------------------------------------------------
+    @staticmethod
+    def _parse_entry(text: str) -> SceneObject:
+        parts = text.split(":")
+        entry = SceneObject(category=parts[0].strip())
+        try:
+            entry.instance = int(parts[1]) if len(parts) > 1 else 0
+            entry.seed = int(parts[2]) if len(parts) > 2 else 0
+        except ValueError:
+            entry.instance = -1  # refused by load() with a message
+        return entry
+
+    def load(self, entries: list[SceneObject], clear: bool
+             ) -> tuple[bool, list[int], list[SceneObject], str]:
+        """Build and place the requested objects; all or nothing.
+
+        Returns (ok, object ids, the objects as loaded, message).
+        """
+        built: list[_SceneObject] = []
+        for i, e in enumerate(entries):
+            if e.instance < 0:
+                return False, [], [], f"entry {i}: instance must be >= 0, got {e.instance}"
+            try:
+                model = make_object(e.category, int(e.instance))
+            except KeyError as err:
+                return False, [], [], f"entry {i}: {err.args[0]}"
+            limits = model.joint_limits
+            if len(e.start_state):
+                q = np.asarray(e.start_state, dtype=float)
+                if q.shape != (len(limits),):
+                    return False, [], [], (f"entry {i}: {model.name} has {len(limits)} movable "
+                                       f"joints, start_state has {len(q)} values")
+                if np.any(q < limits[:, 0] - 1e-6) or np.any(q > limits[:, 1] + 1e-6):
+                    return False, [], [], (f"entry {i}: start_state outside the joint "
+                                           f"limits {limits.tolist()}")
+            else:
+                q = model.sample_start_state(np.random.default_rng(int(e.seed)))
+            pose = None
+            o = e.pose.orientation
+            if abs(o.x) + abs(o.y) + abs(o.z) + abs(o.w) > 0:
+                try:
+                    position, R = from_pose(e.pose)
+                except ValueError as err:
+                    return False, [], [], f"entry {i}: {err}"
+                pose = make_pose(R, position)
+            built.append(_SceneObject(0, model, pose, q, int(e.seed)))
+        with self._lock:
+            objects = [] if clear else list(self._objects)
+            self._layout(objects, built)
+            for obj in built:
+                obj.id = self._next_id
+                self._next_id += 1
+            self._objects = objects + built
+            self._world = (ObjectWorld([o.model for o in self._objects],
+                                       [o.pose for o in self._objects])
+                           if self._objects else None)
+            self._dirty = True
+        loaded = [SceneObject(category=o.model.category, instance=o.model.instance,
+                              start_state=[float(v) for v in o.qpos], seed=o.seed,
+                              pose=to_pose(o.pose[:3, 3], o.pose[:3, :3])) for o in built]
+        names = ", ".join(f"{o.id}={o.model.name}" for o in built)
+        return True, [o.id for o in built], loaded, f"loaded {len(built)} object(s): {names}"
+
+    def _layout(self, existing: list[_SceneObject], new: list[_SceneObject]) -> None:
+        """Place objects without a pose side by side along +y, standing on the table (z=0)."""
+        y = -np.inf
+        for o in existing:
+            b = transform_points(o.pose, o.model.bounds())
+            y = max(y, b[:, 1].max())
+        for o in new:
+            if o.pose is not None:
+                b = transform_points(o.pose, o.model.bounds())
+                y = max(y, b[:, 1].max())
+                continue
+            lo, hi = o.model.bounds()
+            width = hi[1] - lo[1]
+            left = 0.0 if not np.isfinite(y) else y + self.settings.layout_gap
+            o.pose = make_pose(translation=(0.0, left - lo[1], -lo[2]))
+            y = left + width
+
+    def _view(self) -> tuple[np.ndarray, list[PosedMesh]]:
+        """Camera pose and the scene's meshes (objects + table) at the current state."""
+        assert self._world is not None
+        s = self.settings
+        meshes = self._world.posed_meshes(np.concatenate([o.qpos for o in self._objects]))
+        meshes = [PosedMesh(m.vertices, m.triangles, self._objects[m.object_id].id, m.link_id,
+                            m.movable) for m in meshes]
+        allv = np.concatenate([m.vertices for m in meshes])
+        lo, hi = allv.min(0), allv.max(0)
+        center = (lo + hi) / 2
+        cam = self._world.settings.camera
+        distance = s.camera_distance
+        if distance <= 0:  # far enough that the whole row of objects fits in the view
+            extent = float(np.linalg.norm(hi - lo))
+            distance = max(cam.distance, 1.2 * extent / (2 * np.tan(np.radians(cam.fov_deg) / 2)))
+        if s.table:
+            margin = 0.3
+            half = np.array([(hi[0] - lo[0]) / 2 + margin, (hi[1] - lo[1]) / 2 + margin, 0.025])
+            v, t = box_mesh(half)
+            v = v + np.array([center[0], center[1], min(lo[2], 0.0) - 0.025])
+            meshes.append(PosedMesh(v, t, TABLE_ID, -1, False))
+        return view_pose(center, s.camera_azimuth_deg, s.camera_elevation_deg, distance), meshes
+
+    # -- camera ---------------------------------------------------------------------------
+    def capture(self) -> PointCloud2 | None:
+        """The current camera cloud as a message (None for an empty scene)."""
+        with self._lock:
+            if self._world is None:
+                return None
+            pose, meshes = self._view()
+            self._dirty = False
+        if self._camera is None:
+            self._camera = make_camera(self._world.settings.camera)
+        obs = self._camera.capture(meshes, pose)
+        idx = np.arange(len(obs.points))
+        if 0 < self.settings.max_points < len(idx):
+            idx = np.sort(self._rng.choice(len(idx), self.settings.max_points, replace=False))
+        return arrays_to_cloud(
+            obs.points[idx], obs.normals[idx], {"object_id": obs.object_ids[idx].astype(np.int32)},
+            frame_id=self.settings.frame_id, stamp=self.get_clock().now().to_msg())
+
+    def _on_camera_timer(self) -> None:
+        if self.settings.publish_rate_hz <= 0 and not self._dirty:
+            return
+        try:
+            msg = self.capture()
+        except Exception as err:  # a camera failure must not take the robot side down
+            self.get_logger().error(f"camera capture failed: {err}")
+            return
+        if msg is not None:
+            self._cloud_pub.publish(msg)
+        self._publish_joints()
+
+    def _publish_joints(self) -> None:
+        with self._lock:
+            names, pos = [], []
+            for o in self._objects:
+                names += [f"{o.id}/{n}" for n in o.model.joint_names]
+                pos += [float(v) for v in o.qpos]
+        msg = JointState(name=names, position=pos)
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.header.frame_id = self.settings.frame_id
+        self._joints_pub.publish(msg)
+
+    # -- services and actions ----------------------------------------------------------------
+    def _on_load_scene(self, req: LoadScene.Request, resp: LoadScene.Response):
+        try:
+            ok, ids, loaded, msg = self.load(list(req.objects), bool(req.clear))
+        except Exception as err:  # a broken generator must answer, not kill the bridge
+            ok, ids, loaded, msg = False, [], [], f"loading failed: {type(err).__name__}: {err}"
+        resp.success, resp.object_ids, resp.loaded, resp.message = ok, ids, loaded, msg
+        if ok:
+            self.get_logger().info(msg)
+        else:
+            self.get_logger().error(f"load_scene refused: {msg}")
+        return resp
+
+    def _on_follow(self, goal_handle) -> FollowWaypoints.Result:
+        goal = goal_handle.request
+        result = FollowWaypoints.Result(reached=False, valid=False, contact_joint=-1)
+        try:
+            result = self.follow(goal, goal_handle.publish_feedback)
+        except ValueError as err:
+            result.message = str(err)
+        except Exception as err:  # the simulator failed: report, keep serving
+            self.get_logger().error(f"trial failed: {type(err).__name__}: {err}")
+            result.message = f"simulator error: {type(err).__name__}: {err}"
+        if result.message and not result.valid:
+            self.get_logger().warn(f"follow_waypoints: {result.message}")
+        goal_handle.succeed()
+        return result
+
+    def follow(self, goal: FollowWaypoints.Goal, feedback=None) -> FollowWaypoints.Result:
+        """Run the primitive the waypoints encode; raise ValueError for a bad goal."""
+        n = len(goal.waypoints)
+        if goal.header.frame_id not in ("", self.settings.frame_id):
+            raise ValueError(f"waypoints are in frame {goal.header.frame_id!r}; this robot "
+                             f"works in {self.settings.frame_id!r}")
+        if len(goal.gripper) != n:
+            raise ValueError(f"{n} waypoints but {len(goal.gripper)} gripper commands")
+        poses = [from_pose(p) for p in goal.waypoints]
+        action = action_from_waypoints(
+            np.stack([p for p, _ in poses]) if poses else np.zeros((0, 3)),
+            np.stack([R for _, R in poses]) if poses else np.zeros((0, 3, 3)),
+            list(goal.gripper), int(goal.initial_gripper))
+        with self._lock:
+            if self._world is None:
+                raise ValueError("the scene is empty: call load_scene first")
+            ids = [o.id for o in self._objects]
+            if goal.object_id and goal.object_id not in ids:
+                raise ValueError(f"object {goal.object_id} is not in the scene (ids {ids})")
+            world, objects = self._world, list(self._objects)
+            qpos = np.concatenate([o.qpos for o in objects])
+        if feedback is not None:
+            feedback(FollowWaypoints.Feedback(waypoint=0, num_waypoints=n))
+        seed = int(goal.seed) or zlib.crc32(np.asarray(action.point).tobytes())
+        trial = world.run_trial(qpos, action, seed=seed)
+        q_end = qpos + trial.motion
+        offsets = np.cumsum([0] + [len(o.qpos) for o in objects])
+        with self._lock:
+            same = len(self._objects) == len(objects) and all(
+                a is b for a, b in zip(self._objects, objects, strict=True))
+            if same:  # the scene was not reloaded meanwhile
+                for k, o in enumerate(objects):
+                    o.qpos = q_end[offsets[k]:offsets[k + 1]].copy()
+                self._dirty = True
+        if feedback is not None:
+            feedback(FollowWaypoints.Feedback(waypoint=n, num_waypoints=n))
+
+        # report the requested object (or the touched one when none was named)
+        touched = (int(np.searchsorted(offsets, trial.target_joint, side="right") - 1)
+                   if trial.target_joint >= 0 else -1)
+        k = ids.index(goal.object_id) if goal.object_id else max(touched, 0)
+        o, a, b = objects[k], offsets[k], offsets[k + 1]
+        limits = o.model.joint_limits
+        res = FollowWaypoints.Result()
+        res.reached = trial.valid  # the flying gripper reaches every waypoint of a valid trial
+        res.valid = trial.valid
+        res.contact_at_start = trial.reason == "contact at first step"
+        res.contacts = [f"{objects[touched].id}/{trial.target_link}"] if touched >= 0 else []
+        res.joints_before = JointState(name=list(o.model.joint_names),
+                                       position=[float(v) for v in qpos[a:b]])
+        res.joints_after = JointState(name=list(o.model.joint_names),
+                                      position=[float(v) for v in q_end[a:b]])
+        res.joints_before.header.frame_id = res.joints_after.header.frame_id = str(o.id)
+        res.joint_ranges = [float(hi - lo) for lo, hi in limits]
+        res.child_links = [o.model.links[j.child].name for j in o.model.movable_joints]
+        res.contact_joint = int(trial.target_joint - a) if touched == k else -1
+        res.contact_displacement = to_vector3(trial.contact_displacement)
+        res.message = trial.reason if not trial.valid else ""
+        self.get_logger().info(
+            f"{action.primitive} on object {o.id}: valid={trial.valid} "
+            f"moved={trial.moved_link or '-'} ({trial.reason or 'ok'})")
+        return res
+
+
+def main(args: list[str] | None = None) -> None:
+    """Run the bridge (multi-threaded: the camera keeps publishing during a trial)."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = SimBridgeNode()
+        executor = MultiThreadedExecutor(num_threads=2)
+        executor.add_node(node)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,298 @@
+"""Bring up the w2e node stack without ``ros2 launch`` (not installable from the package index).
+
+Every node runs as its own process under this Python (the venv's), as
+``python -m <module> --ros-args -r __node:=<name> -r __ns:=<ns> --params-file <yaml>``, its
+output prefixed with ``[name]``. The stack is up when every node's services, actions and
+topics are visible on the ROS graph; it is stopped with TERM, a wait, TERM again, then KILL,
+and the Fast DDS shared-memory files its processes leave are removed.
+
+Command line (also ``w2e bringup``)::
+
+    python -m w2e_ros.bringup --nodes sim_bridge executor --namespace w2e
+
+Python (the integration tests and the demo)::
+
+    with Stack(nodes=["sim_bridge", "executor"], env=ros_env(domain_id=42)) as stack:
+        ...  # the nodes are up here
+
+On a full ROS install ``ros2 launch w2e_ros w2e_stack.launch.py`` starts the same nodes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TextIO
+
+import yaml
+
+from w2e_ros.paths import config_dir
+from w2e_ros.ros.processes import clean_shm, ros_env, shm_files, stop_process, venv_python
+
+
+@dataclass(frozen=True)
+class NodeSpec:
+    """One node of the stack: its ROS name, its module and what it offers once it is up."""
+
+    name: str  # ROS node name, and its section in config/w2e_stack.yaml
+    module: str  # run as `python -m module`
+    services: tuple[str, ...] = ()  # relative service names
+    actions: tuple[str, ...] = ()  # relative action names
+    publishers: tuple[str, ...] = ()  # relative topics it publishes
+
+
+NODES: dict[str, NodeSpec] = {
+    spec.name: spec
+    for spec in (
+        NodeSpec("sim_bridge", "sim_bridge.bridge_node", services=("load_scene",),
+                 actions=("follow_waypoints",), publishers=("camera/points",)),
+        NodeSpec("segmentation", "w2e_ros.nodes.segmentation_node", publishers=("objects",)),
+        NodeSpec("inference", "w2e_ros.nodes.inference_node",
+                 services=("predict_maps", "update_model")),
+        NodeSpec("executor", "w2e_ros.nodes.executor_node", actions=("execute_interaction",)),
+        NodeSpec("planner", "w2e_ros.nodes.planner_node", services=("explore", "manipulate")),
+    )
+}
+"""Every node of the stack, in start order (the planner needs all the others)."""
+
+
+class StackError(RuntimeError):
+    """A node of the stack failed to start (its last output lines are in the message)."""
+
+
+def default_params() -> Path:
+    """config/w2e_stack.yaml of the source tree or the installed share directory."""
+    return config_dir() / "w2e_stack.yaml"
+
+
+def namespaced_params(params: Path, namespace: str, out_dir: Path) -> Path:
+    """The parameter file with each plain ``node_name:`` key moved under ``/<ns>/``.
+
+    rcl matches a plain key only to a node in the root namespace (as nav2's RewrittenYaml
+    does with ``root_key``); wildcard and absolute keys (``/**``, ``/ns/node``) stay as they
+    are.
+    """
+    ns = namespace.strip("/")
+    if not ns:
+        return params
+    data = yaml.safe_load(Path(params).read_text()) or {}
+    out = {(k if str(k).startswith("/") else f"/{ns}/{k}"): v for k, v in data.items()}
+    path = out_dir / f"{Path(params).stem}.{ns.replace('/', '_')}.yaml"
+    path.write_text(yaml.safe_dump(out, sort_keys=False))
+    return path
+
+
+class _Proc:
+    """A running node: its process, a thread that prefixes its output, its last lines."""
+
+    def __init__(self, spec: NodeSpec, popen: subprocess.Popen, output: TextIO | None,
+                 lock: threading.Lock):
+        self.spec = spec
+        self.popen = popen
+        self.tail: collections.deque[str] = collections.deque(maxlen=40)
+        self._thread = threading.Thread(target=self._pump, args=(output, lock), daemon=True)
+        self._thread.start()
+
+    def _pump(self, output: TextIO | None, lock: threading.Lock) -> None:
+        assert self.popen.stdout is not None
+        for line in self.popen.stdout:
+            line = line.rstrip("\n")
+            self.tail.append(line)
+            if output is not None:
+                with lock:
+                    output.write(f"[{self.spec.name}] {line}\n")
+                    output.flush()
+
+    def join(self, timeout: float = 2.0) -> None:
+        self._thread.join(timeout)
+
+
+class Stack:
+    """The w2e nodes as processes; a context manager that starts them, waits until they are
+    up and always stops them (and cleans their shared memory) on exit."""
+
+    def __init__(
+        self,
+        nodes: list[str] | None = None,
+        params: str | Path | None = None,
+        namespace: str = "",
+        env: dict[str, str] | None = None,
+        output: TextIO | None = sys.stdout,
+        ready_timeout: float = 120.0,
+        extra_args: dict[str, list[str]] | None = None,
+    ):
+        names = list(nodes) if nodes else list(NODES)
+        unknown = [n for n in names if n not in NODES]
+        if unknown:
+            raise ValueError(f"unknown nodes {unknown}; the stack has {list(NODES)}")
+        self.specs = [NODES[n] for n in NODES if n in names]  # start order
+        self.params = Path(params) if params else default_params()
+        if not self.params.exists():
+            raise FileNotFoundError(f"parameter file {self.params} does not exist")
+        self.namespace = "/" + namespace.strip("/") if namespace.strip("/") else ""
+        self.env = ros_env(base=env, localhost_only=False)
+        self.output = output
+        self.ready_timeout = ready_timeout
+        self.extra_args = extra_args or {}
+        self.procs: list[_Proc] = []
+        self._lock = threading.Lock()
+        self._tmp: tempfile.TemporaryDirectory | None = None
+        self._shm_before: set[Path] = set()
+
+    # -- life cycle ---------------------------------------------------------------------------
+    def command(self, spec: NodeSpec, params: Path) -> list[str]:
+        """The command line of one node."""
+        cmd = [venv_python(), "-m", spec.module, "--ros-args", "-r", f"__node:={spec.name}",
+               "--params-file", str(params)]
+        if self.namespace:
+            cmd += ["-r", f"__ns:={self.namespace}"]
+        return cmd + list(self.extra_args.get(spec.name, []))
+
+    def start(self, wait: bool = True) -> Stack:
+        """Start every node (in order) and, with ``wait``, block until all are up."""
+        self._shm_before = shm_files()
+        self._tmp = tempfile.TemporaryDirectory(prefix="w2e_bringup_")
+        params = namespaced_params(self.params, self.namespace, Path(self._tmp.name))
+        try:
+            for spec in self.specs:
+                popen = subprocess.Popen(
+                    self.command(spec, params), env=self.env, stdin=subprocess.DEVNULL,
+                    stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1,
+                    start_new_session=True)
+                self.procs.append(_Proc(spec, popen, self.output, self._lock))
+            if wait:
+                self.wait_ready()
+        except BaseException:
+            self.stop()
+            raise
+        return self
+
+    def wait_ready(self, timeout: float | None = None) -> None:
+        """Block until every node's services, actions and topics are on the graph."""
+        import rclpy
+        from rclpy.node import Node
+
+        timeout = self.ready_timeout if timeout is None else timeout
+        ctx = rclpy.Context()
+        # the probe joins the nodes' domain: the stack's env, not this process's
+        rclpy.init(context=ctx, domain_id=int(self.env.get("ROS_DOMAIN_ID", "0")))
+        probe = Node("w2e_bringup_probe", context=ctx, start_parameter_services=False)
+        try:
+            pending = {p.spec.name: p for p in self.procs}
+            deadline = time.monotonic() + timeout
+            while pending:
+                for name, proc in list(pending.items()):
+                    if proc.popen.poll() is not None:
+                        proc.join()
+                        tail = "\n  ".join(proc.tail)
+                        raise StackError(
+                            f"node {name} exited with code {proc.popen.returncode} while "
+                            f"starting; its last output:\n  {tail}")
+                    if self._is_up(probe, proc.spec):
+                        pending.pop(name)
+                        self._say(f"node {name} is up")
+                if not pending:
+                    break
+                if time.monotonic() > deadline:
+                    raise StackError(f"nodes {sorted(pending)} were not up after {timeout:.0f} s")
+                time.sleep(0.2)
+        finally:
+            probe.destroy_node()
+            rclpy.try_shutdown(context=ctx)
+
+    def _is_up(self, probe, spec: NodeSpec) -> bool:
+        ns = self.namespace
+        services = {n for n, _ in probe.get_service_names_and_types()}
+        want = [f"{ns}/{s}" for s in spec.services]
+        want += [f"{ns}/{a}/_action/send_goal" for a in spec.actions]
+        if any(w not in services for w in want):
+            return False
+        if spec.publishers:
+            try:
+                topics = {n for n, _ in probe.get_publisher_names_and_types_by_node(
+                    spec.name, ns or "/")}
+            except Exception:  # node not discovered yet
+                return False
+            if any(f"{ns}/{t}" not in topics for t in spec.publishers):
+                return False
+        return bool(want or spec.publishers) or spec.name in probe.get_node_names()
+
+    def alive(self) -> dict[str, bool]:
+        """Which nodes are still running."""
+        return {p.spec.name: p.popen.poll() is None for p in self.procs}
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """Stop every node (reverse order, TERM -> TERM -> KILL) and clean shared memory."""
+        for proc in reversed(self.procs):
+            code = stop_process(proc.popen, timeout=timeout)
+            proc.join()
+            if code not in (0, None, -signal.SIGTERM):
+                self._say(f"node {proc.spec.name} exited with code {code}")
+        self.procs.clear()
+        clean_shm(self._shm_before)
+        if self._tmp is not None:
+            self._tmp.cleanup()
+            self._tmp = None
+
+    def __enter__(self) -> Stack:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def _say(self, text: str) -> None:
+        if self.output is not None:
+            with self._lock:
+                self.output.write(f"[bringup] {text}\n")
+                self.output.flush()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``w2e bringup``: start the stack, keep it up until Ctrl-C or SIGTERM, stop it cleanly."""
+    p = argparse.ArgumentParser(prog="w2e bringup", description=__doc__.split("\n\n")[0])
+    p.add_argument("--nodes", nargs="+", default=None, choices=list(NODES),
+                   help="nodes to start (default: all)")
+    p.add_argument("--params", default=None, help="parameter file (default config/w2e_stack.yaml)")
+    p.add_argument("--namespace", default="", help="namespace of every node (default: none)")
+    p.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID for the nodes")
+    p.add_argument("--log-dir", default=None, help="ROS_LOG_DIR for the nodes")
+    p.add_argument("--timeout", type=float, default=120.0, help="seconds to wait for start-up")
+    a = p.parse_args(argv)
+
+    env = ros_env(domain_id=a.domain_id, log_dir=a.log_dir, localhost_only=False)
+    stopping = threading.Event()
+
+    def on_term(signum, frame):  # SIGTERM behaves as Ctrl-C
+        stopping.set()
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, on_term)
+    stack = Stack(nodes=a.nodes, params=a.params, namespace=a.namespace, env=env,
+                  ready_timeout=a.timeout)
+    try:
+        stack.start()
+        stack._say("stack is up; Ctrl-C stops it")
+        while any(stack.alive().values()):
+            time.sleep(0.5)
+        stack._say("every node has exited")
+        return 1
+    except KeyboardInterrupt:
+        return 0
+    except StackError as e:
+        print(f"[bringup] {e}", file=sys.stderr)
+        return 1
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a second TERM must not cut cleanup
+        stack.stop()
+
+
+if __name__ == "__main__":
+    sys.exit(main())
