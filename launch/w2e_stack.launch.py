@@ -1,0 +1,80 @@
+"""Launch the w2e node stack on a full ROS 2 install: ``ros2 launch w2e_ros w2e_stack.launch.py``.
+
+The same nodes, names and parameter file as ``w2e bringup`` (which is what runs where
+``ros2 launch`` is not installable). Arguments::
+
+    namespace:=<ns>          namespace of every node (default: none)
+    params_file:=<yaml>      default: share/w2e_ros/config/w2e_stack.yaml
+    use_sim:=true|false      start the sim bridge (false: real camera + robot adapters)
+    nodes:=a,b,c             subset of sim_bridge,segmentation,inference,executor,planner
+
+Each node gets its own section of the YAML as a parameter dictionary, so the plain
+``node_name:`` keys work under any namespace (what nav2 does with RewrittenYaml).
+"""
+
+import os
+
+import yaml
+from ament_index_python.packages import get_package_share_directory
+from launch.actions import DeclareLaunchArgument, OpaqueFunction
+from launch.substitutions import LaunchConfiguration
+from launch_ros.actions import Node
+
+from launch import LaunchDescription
+
+# node name -> console script (setup.py), in start order
+NODES = {
+    "sim_bridge": "sim_bridge_node",
+    "segmentation": "segmentation_node",
+    "inference": "inference_node",
+    "executor": "executor_node",
+    "planner": "planner_node",
+}
+
+
+def _nodes(context, *args, **kwargs):
+    namespace = LaunchConfiguration("namespace").perform(context)
+    params_file = LaunchConfiguration("params_file").perform(context)
+    use_sim = LaunchConfiguration("use_sim").perform(context).lower() in ("true", "1", "yes")
+    wanted = [n.strip() for n in LaunchConfiguration("nodes").perform(context).split(",")
+              if n.strip()]
+    unknown = [n for n in wanted if n not in NODES]
+    if unknown:
+        raise RuntimeError(f"unknown nodes {unknown}; the stack has {list(NODES)}")
+    with open(params_file) as f:
+        params = yaml.safe_load(f) or {}
+    shared = params.get("/**", {}).get("ros__parameters", {})
+    actions = []
+    for name, executable in NODES.items():
+        if wanted and name not in wanted:
+            continue
+        if name == "sim_bridge" and not use_sim:
+            continue
+        section = dict(shared)
+        section.update(params.get(name, {}).get("ros__parameters", {}))
+        actions.append(Node(
+            package="w2e_ros",
+            executable=executable,
+            name=name,
+            namespace=namespace,
+            parameters=[section],
+            output="screen",
+            emulate_tty=True,
+        ))
+    return actions
+
+
+def generate_launch_description() -> LaunchDescription:
+    default_params = os.path.join(
+        get_package_share_directory("w2e_ros"), "config", "w2e_stack.yaml")
+    return LaunchDescription([
+        DeclareLaunchArgument("namespace", default_value="",
+                              description="namespace of every node"),
+        DeclareLaunchArgument("params_file", default_value=default_params,
+                              description="parameter file of the whole stack"),
+        DeclareLaunchArgument("use_sim", default_value="true",
+                              description="start the SAPIEN sim bridge as camera and robot"),
+        DeclareLaunchArgument("nodes", default_value="",
+                              description="comma-separated subset of nodes (default: all)"),
+        OpaqueFunction(function=_nodes),
+    ])
