@@ -85,8 +85,9 @@ class _SceneObject:
 class SimBridgeNode(Node):
     """Serves the simulated scene: camera cloud, scene loading, waypoint following."""
 
-    def __init__(self) -> None:
-        super().__init__("sim_bridge")
+    def __init__(self, **node_kwargs) -> None:
+        """``node_kwargs`` go to Node (context, parameter_overrides: tests)."""
+        super().__init__("sim_bridge", **node_kwargs)
         self.settings = declare_typed_parameters(self, BridgeSettings)
         self.get_logger().info(f"settings: {describe(self.settings)}")
         self._lock = threading.Lock()  # guards the scene: camera vs. trials vs. loading

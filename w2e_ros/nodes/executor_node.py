@@ -65,8 +65,9 @@ class _Waiter:
 class GripperExecutorNode(Node):
     """Executes Interactions on the robot side's waypoint follower."""
 
-    def __init__(self) -> None:
-        super().__init__("executor")
+    def __init__(self, **node_kwargs) -> None:
+        """``node_kwargs`` go to Node (context, parameter_overrides: tests)."""
+        super().__init__("executor", **node_kwargs)
         self.settings = declare_typed_parameters(self, ExecutorSettings)
         self.get_logger().info(f"settings: {describe(self.settings)}")
         self._busy = threading.Lock()  # one interaction at a time: there is one gripper
