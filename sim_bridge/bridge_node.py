@@ -357,7 +357,7 @@ class SimBridgeNode(Node):
 def main(args: list[str] | None = None) -> None:
     """Run the bridge (multi-threaded: the camera keeps publishing during a trial)."""
     rclpy.init(args=args)
-    node = None
+    node = executor = None
     try:
         node = SimBridgeNode()
         executor = MultiThreadedExecutor(num_threads=2)
@@ -366,6 +366,8 @@ def main(args: list[str] | None = None) -> None:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        if executor is not None:
+            executor.shutdown(timeout_sec=1.0)  # finish callbacks before the node goes
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()

@@ -21,7 +21,7 @@ from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from sensor_msgs.msg import JointState, PointCloud2  # noqa: E402
 from w2e_msgs.action import ExecuteInteraction, FollowWaypoints  # noqa: E402
-from w2e_msgs.msg import Interaction, SceneObject  # noqa: E402
+from w2e_msgs.msg import Interaction, SceneObject, SegmentedObjects  # noqa: E402
 from w2e_msgs.srv import LoadScene  # noqa: E402
 
 from sim_bridge.objects import make_object  # noqa: E402
@@ -31,7 +31,7 @@ from w2e_ros.bringup import Stack  # noqa: E402
 from w2e_ros.ros.conversions import action_to_interaction, from_pose, to_pose  # noqa: E402
 from w2e_ros.ros.pointcloud import cloud_to_arrays  # noqa: E402
 from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, ros_env  # noqa: E402
-from w2e_ros.ros.qos import RELIABLE_QOS, SENSOR_QOS  # noqa: E402
+from w2e_ros.ros.qos import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS  # noqa: E402
 
 pytestmark = pytest.mark.slow
 clean_shm_at_exit()
@@ -76,7 +76,8 @@ class _Client:
 def stack(tmp_path_factory):
     domain = pick_domain_id(2)
     env = ros_env(domain_id=domain, log_dir=tmp_path_factory.mktemp("ros_log"))
-    with Stack(nodes=["sim_bridge", "executor"], env=env, ready_timeout=90.0) as s:
+    with Stack(nodes=["sim_bridge", "segmentation", "executor"], env=env,
+               ready_timeout=90.0) as s:
         client = _Client(domain)
         try:
             yield s, client
@@ -125,6 +126,13 @@ def test_pull_on_drawer_handle_opens_it(stack):
     client.wait(lambda: clouds, 30.0, "a camera cloud")
     cloud = cloud_to_arrays(clouds[-1], require_normals=True, fields=("object_id",))
     assert set(np.unique(cloud.fields["object_id"])) == {0, obj_id}  # table + the cabinet
+    # the segmentation node sees the cabinet under its scene id
+    objects: list[SegmentedObjects] = []
+    client.node.create_subscription(SegmentedObjects, "objects", objects.append, LATCHED_QOS)
+    client.wait(lambda: objects and [o.id for o in objects[-1].objects] == [obj_id], 30.0,
+                "the cabinet in objects")
+    seg = cloud_to_arrays(objects[-1].objects[0].cloud, require_normals=True)
+    assert seg.points.shape == (2048, 3)
 
     act = ActionClient(client.node, ExecuteInteraction, "execute_interaction")
     client.wait(act.server_is_ready, 30.0, "execute_interaction")

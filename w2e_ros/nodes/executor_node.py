@@ -148,7 +148,7 @@ class GripperExecutorNode(Node):
 def main(args: list[str] | None = None) -> None:
     """Run the executor; multi-threaded so a goal can wait on the robot's action."""
     rclpy.init(args=args)
-    node = None
+    node = executor = None
     try:
         node = GripperExecutorNode()
         executor = MultiThreadedExecutor(num_threads=3)
@@ -157,6 +157,8 @@ def main(args: list[str] | None = None) -> None:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        if executor is not None:
+            executor.shutdown(timeout_sec=1.0)  # finish callbacks before the node goes
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
