@@ -22,13 +22,13 @@ from launch_ros.actions import Node
 
 from launch import LaunchDescription
 
-# node name -> console script (setup.py), in start order
+# short name -> (console script in setup.py, ROS node name = section of the YAML), start order
 NODES = {
-    "sim_bridge": "sim_bridge_node",
-    "segmentation": "segmentation_node",
-    "inference": "inference_node",
-    "executor": "executor_node",
-    "planner": "planner_node",
+    "sim_bridge": ("sim_bridge_node", "sim_bridge"),
+    "segmentation": ("segmentation_node", "segmentation"),
+    "inference": ("inference_node", "inference_node"),
+    "executor": ("executor_node", "executor"),
+    "planner": ("planner_node", "planner_node"),
 }
 
 
@@ -45,17 +45,17 @@ def _nodes(context, *args, **kwargs):
         params = yaml.safe_load(f) or {}
     shared = params.get("/**", {}).get("ros__parameters", {})
     actions = []
-    for name, executable in NODES.items():
+    for name, (executable, node_name) in NODES.items():
         if wanted and name not in wanted:
             continue
         if name == "sim_bridge" and not use_sim:
             continue
         section = dict(shared)
-        section.update(params.get(name, {}).get("ros__parameters", {}))
+        section.update(params.get(node_name, {}).get("ros__parameters", {}))
         actions.append(Node(
             package="w2e_ros",
             executable=executable,
-            name=name,
+            name=node_name,
             namespace=namespace,
             parameters=[section],
             output="screen",

@@ -1,10 +1,11 @@
 """Bring up the w2e node stack without ``ros2 launch`` (not installable from the package index).
 
 Every node runs as its own process under this Python (the venv's), as
-``python -m <module> --ros-args -r __node:=<name> -r __ns:=<ns> --params-file <yaml>``, its
-output prefixed with ``[name]``. The stack is up when every node's services, actions and
-topics are visible on the ROS graph; it is stopped with TERM, a wait, TERM again, then KILL,
-and the Fast DDS shared-memory files its processes leave are removed.
+``python -m <module> --ros-args --params-file <yaml> -r __ns:=<ns>``, its output prefixed
+with ``[name]``; its parameters are the YAML section named as the node names itself. The
+stack is up when every node's services, actions and topics are visible on the ROS graph; it
+is stopped with TERM, a wait, TERM again, then KILL, and the Fast DDS shared-memory files its
+processes leave are removed.
 
 Command line (also ``w2e bringup``)::
 
@@ -42,7 +43,8 @@ from w2e_ros.ros.processes import clean_shm, ros_env, shm_files, stop_process, v
 class NodeSpec:
     """One node of the stack: its ROS name, its module and what it offers once it is up."""
 
-    name: str  # ROS node name, and its section in config/w2e_stack.yaml
+    name: str  # short name (command line, Stack(nodes=[...]))
+    node: str  # the ROS node name the module gives itself = its section in w2e_stack.yaml
     module: str  # run as `python -m module`
     services: tuple[str, ...] = ()  # relative service names
     actions: tuple[str, ...] = ()  # relative action names
@@ -52,13 +54,17 @@ class NodeSpec:
 NODES: dict[str, NodeSpec] = {
     spec.name: spec
     for spec in (
-        NodeSpec("sim_bridge", "sim_bridge.bridge_node", services=("load_scene",),
-                 actions=("follow_waypoints",), publishers=("camera/points",)),
-        NodeSpec("segmentation", "w2e_ros.nodes.segmentation_node", publishers=("objects",)),
-        NodeSpec("inference", "w2e_ros.nodes.inference_node",
+        NodeSpec("sim_bridge", "sim_bridge", "sim_bridge.bridge_node",
+                 services=("load_scene",), actions=("follow_waypoints",),
+                 publishers=("camera/points",)),
+        NodeSpec("segmentation", "segmentation", "w2e_ros.nodes.segmentation_node",
+                 publishers=("objects",)),
+        NodeSpec("inference", "inference_node", "w2e_ros.nodes.inference_node",
                  services=("predict_maps", "update_model")),
-        NodeSpec("executor", "w2e_ros.nodes.executor_node", actions=("execute_interaction",)),
-        NodeSpec("planner", "w2e_ros.nodes.planner_node", services=("explore", "manipulate")),
+        NodeSpec("executor", "executor", "w2e_ros.nodes.executor_node",
+                 actions=("execute_interaction",)),
+        NodeSpec("planner", "planner_node", "w2e_ros.nodes.planner_node",
+                 services=("explore", "manipulate")),
     )
 }
 """Every node of the stack, in start order (the planner needs all the others)."""
@@ -150,8 +156,7 @@ class Stack:
     # -- life cycle ---------------------------------------------------------------------------
     def command(self, spec: NodeSpec, params: Path) -> list[str]:
         """The command line of one node."""
-        cmd = [venv_python(), "-m", spec.module, "--ros-args", "-r", f"__node:={spec.name}",
-               "--params-file", str(params)]
+        cmd = [venv_python(), "-m", spec.module, "--ros-args", "--params-file", str(params)]
         if self.namespace:
             cmd += ["-r", f"__ns:={self.namespace}"]
         return cmd + list(self.extra_args.get(spec.name, []))
@@ -218,12 +223,12 @@ class Stack:
         if spec.publishers:
             try:
                 topics = {n for n, _ in probe.get_publisher_names_and_types_by_node(
-                    spec.name, ns or "/")}
+                    spec.node, ns or "/")}
             except Exception:  # node not discovered yet
                 return False
             if any(f"{ns}/{t}" not in topics for t in spec.publishers):
                 return False
-        return bool(want or spec.publishers) or spec.name in probe.get_node_names()
+        return bool(want or spec.publishers) or spec.node in probe.get_node_names()
 
     def alive(self) -> dict[str, bool]:
         """Which nodes are still running."""
