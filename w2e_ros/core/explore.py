@@ -26,7 +26,14 @@ from w2e_ros.core.config import ExploreConfig
 from w2e_ros.core.data import InteractionData
 from w2e_ros.core.model import W2EModel
 from w2e_ros.core.strategies import Scored, Strategy
-from w2e_ros.core.train import BalancedSampler, Batch, RunningAccuracy, make_batch, training_losses
+from w2e_ros.core.train import (
+    BalancedSampler,
+    Batch,
+    RunningAccuracy,
+    make_batch,
+    make_deterministic,
+    training_losses,
+)
 
 log = logging.getLogger("w2e.explore")
 
@@ -191,6 +198,7 @@ class W2EExplorer:
                  train_similarity: bool = True, seed: int = 0) -> None:
         self.model, self.cfg = model, cfg
         self.device = model.device
+        make_deterministic(seed)
         self.rng = np.random.default_rng(seed)
         self.opt = torch.optim.Adam(model.parameters(), lr=cfg.finetune_lr)
         self.aff_cats, self.sim_cats = tuple(aff_categories), tuple(sim_categories)

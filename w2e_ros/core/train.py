@@ -36,6 +36,13 @@ from w2e_ros.core.model import W2EModel, default_device, load_model, save_model
 log = logging.getLogger("w2e.train")
 
 
+def make_deterministic(seed: int) -> None:
+    """Same seed => same weights: seed torch and pick deterministic kernels (the backward of
+    the feature gather accumulates in a thread-dependent order otherwise)."""
+    torch.manual_seed(seed)
+    torch.use_deterministic_algorithms(True, warn_only=True)
+
+
 def method_categories(method: str, combo: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
     """(categories training the affordance head, categories training the similarity head)."""
     cats = load_categories()
@@ -240,7 +247,7 @@ class Trainer:
                  ) -> None:
         self.cfg, self.data = cfg, data
         self.device = device or default_device()
-        torch.manual_seed(cfg.seed)
+        make_deterministic(cfg.seed)
         self.rng = np.random.default_rng(cfg.seed)
         self.aff_cats, self.sim_cats = method_categories(cfg.method, cfg.combo)
         mcfg = model_cfg or ModelConfig(num_points=int(data.points.shape[1]))
