@@ -1,0 +1,496 @@
+"""Planner node: the user-facing ``explore`` and ``manipulate`` services.
+
+``explore`` runs THE few-shot loop of the core (``w2e_ros.core.explore.explore``) with two
+ROS-backed halves: :class:`RosModel` (the inference node's ``predict_maps`` / ``update_model``)
+and :class:`RosWorld` (object clouds from the segmentation node's ``objects``, scenes loaded
+through the bridge's ``load_scene``, interactions run by the executor's
+``execute_interaction`` action). ``manipulate`` executes, per object, the action with the
+highest predicted affordance. Progress goes out on ``exploration_progress`` after every step.
+
+Every wait on another node has a timeout (parameters): a dead inference or executor node
+turns into success=false with a message, never a hung service; the inference node saves its
+checkpoint after every update, so what was learned before the failure is kept.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import rclpy
+from rclpy.action import ActionClient
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.task import Future
+from rclpy.time import Time
+from sensor_msgs.msg import PointCloud2
+from w2e_msgs.action import ExecuteInteraction
+from w2e_msgs.msg import (
+    ExplorationProgress,
+    Interaction,
+    InteractionOutcome,
+    SceneObject,
+    SegmentedObjects,
+)
+from w2e_msgs.srv import Explore, LoadScene, Manipulate, PredictMaps, UpdateModel
+
+from sim_bridge.types import PRIMITIVES, Action, TrialResult
+from w2e_ros.core.categories import load_categories
+from w2e_ros.core.config import ExploreConfig
+from w2e_ros.core.explore import Candidates, StepRecord, explore
+from w2e_ros.core.sim_world import stable_seed
+from w2e_ros.core.strategies import Scored, get_strategy
+from w2e_ros.ros.conversions import (
+    action_to_interaction,
+    outcome_to_trial_result,
+    trial_result_to_outcome,
+)
+from w2e_ros.ros.params import declare_typed_parameters, describe, param
+from w2e_ros.ros.pointcloud import cloud_to_arrays
+from w2e_ros.ros.qos import LATCHED_QOS, RELIABLE_QOS
+
+
+@dataclass
+class PlannerSettings:
+    """Parameters of the planner node (config/w2e_stack.yaml: ``planner_node``)."""
+
+    strategy: str = param("similarity", "exploration strategy: similarity (Where2Explore), "
+                          "where2act, nosim, random")
+    points_per_object: int = param(256, "candidate contact points per object and step", min=1)
+    dirs_per_point: int = param(8, "candidate gripper frames per contact point", min=1)
+    default_bar: float = param(0.9, "similarity bar when the request gives 0", min=0.0,
+                               max=1.0)
+    max_budget: int = param(50, "largest budget an explore request may ask for", min=1)
+    update_steps: int = param(0, "gradient steps per update (0: the inference node's default)",
+                              min=0)
+    manipulate_directions: int = param(16, "gripper frames per point scored for manipulate "
+                                       "(0: the inference node's default)", min=0)
+    service_timeout_s: float = param(120.0, "longest wait for predict_maps / update_model",
+                                     min=0.1)
+    execute_timeout_s: float = param(60.0, "longest wait for one executed interaction",
+                                     min=0.1)
+    scene_timeout_s: float = param(30.0, "longest wait for load_scene", min=0.1)
+    observe_timeout_s: float = param(15.0, "longest wait for a segmented cloud of an object",
+                                     min=0.1)
+    connect_timeout_s: float = param(5.0, "longest wait for a server to appear", min=0.0)
+    fresh_after_execute: bool = param(True, "after an interaction, observe the object in a "
+                                      "camera frame taken after it (the part may have moved)")
+    seed: int = param(0, "seed of the candidate sampling and of the scene start states")
+
+
+class StackError(RuntimeError):
+    """Another node did not answer, answered with an error, or is gone."""
+
+
+def wait_future(future: Future, timeout: float, what: str,
+                alive: Callable[[], bool] | None = None) -> Any:
+    """Block this (executor) thread until another thread completes ``future``; give up after
+    ``timeout``, or early once ``alive()`` says the server has left the graph."""
+    done = threading.Event()
+    future.add_done_callback(lambda _f: done.set())
+    deadline = time.monotonic() + timeout
+    gone = 0
+    while not done.wait(min(1.0, max(0.0, deadline - time.monotonic()))):
+        if time.monotonic() >= deadline:
+            raise StackError(f"{what}: no answer within {timeout:.0f} s (is the node running?)")
+        gone = gone + 1 if alive is not None and not alive() else 0
+        if gone >= 2:
+            raise StackError(f"{what}: the server left the ROS graph while answering (did its "
+                             "node die?)")
+    if future.exception() is not None:
+        raise StackError(f"{what}: {future.exception()}")
+    return future.result()
+
+
+@dataclass
+class ObservedCloud:
+    """A segmented object cloud as the core consumes it, with the message to forward."""
+
+    points: np.ndarray  # (N, 3)
+    normals: np.ndarray  # (N, 3)
+    msg: PointCloud2
+    object_id: int
+
+
+class RosWorld:
+    """``ExplorationWorld`` over the stack: targets are scene object ids."""
+
+    def __init__(self, node: PlannerNode) -> None:
+        self.node = node
+        self.s = node.settings
+        self.seen_after: dict[int, Time] = {}  # object -> earliest acceptable frame stamp
+        self.last_outcome: InteractionOutcome | None = None
+        self.executed = 0
+
+    def observe(self, target: int) -> ObservedCloud:
+        msg = self.node.wait_for_objects([target], self.seen_after.get(target),
+                                         self.s.observe_timeout_s)[target]
+        arr = cloud_to_arrays(msg.cloud, require_normals=True)
+        return ObservedCloud(arr.points, arr.normals, msg.cloud, int(target))
+
+    def execute(self, target: int, action: Action) -> TrialResult:
+        outcome = self.node.execute(action_to_interaction(action, object_id=int(target)))
+        self.last_outcome = outcome
+        self.executed += 1
+        if self.s.fresh_after_execute:
+            self.seen_after[int(target)] = self.node.get_clock().now()
+        return outcome_to_trial_result(outcome)
+
+
+class RosModel:
+    """``ExplorationModel`` over the inference node: scores and updates go through services."""
+
+    def __init__(self, node: PlannerNode, primitive: str, category: str) -> None:
+        self.node, self.primitive, self.category = node, primitive, category
+        self.checkpoint_path = ""
+        self.last_mean: float | None = None
+        self.on_scored: list = []  # callbacks(mean similarity), after every score
+
+    def score(self, clouds: Sequence[ObservedCloud],
+              candidates: Sequence[Candidates]) -> list[Scored]:
+        req = PredictMaps.Request(clouds=[c.msg for c in clouds],
+                                  object_ids=[c.object_id for c in clouds],
+                                  primitive=self.primitive, num_directions=4, num_best=1)
+        req.query_cloud = np.concatenate(
+            [np.full(len(c), i, np.uint32) for i, c in enumerate(candidates)]).tolist()
+        req.query_point_index = np.concatenate(
+            [c.point_index for c in candidates]).astype(np.uint32).tolist()
+        frames = np.concatenate([np.concatenate([c.up, c.forward], axis=1)
+                                 for c in candidates]).astype(np.float32)
+        req.query_frames = frames.reshape(-1).tolist()
+        res = self.node.call(self.node.predict_cli, req, "predict_maps")
+        aff = np.asarray(res.query_affordances, np.float32)
+        sim = np.asarray(res.query_similarities, np.float32)
+        out, start = [], 0
+        for c in candidates:
+            out.append(Scored(aff[start:start + len(c)], sim[start:start + len(c)]))
+            start += len(c)
+        self.last_mean = float(np.mean(sim)) if len(sim) else 0.0
+        for cb in self.on_scored:
+            cb(self.last_mean)
+        return out
+
+    def update(self, cloud: ObservedCloud, candidates: Candidates, index: int,
+               result: TrialResult) -> dict[str, float]:
+        action = candidates.action(cloud, index, self.primitive)
+        req = UpdateModel.Request(
+            cloud=cloud.msg, interactions=[action_to_interaction(action, cloud.object_id)],
+            outcomes=[trial_result_to_outcome(result)], category=self.category,
+            update_affordance=True, steps=self.node.settings.update_steps,
+            save_checkpoint=True)
+        res = self.node.call(self.node.update_cli, req, "update_model")
+        self.checkpoint_path = res.checkpoint_path or self.checkpoint_path
+        return {"loss": res.loss, "loss_aff": res.affordance_loss,
+                "loss_sim": res.similarity_loss}
+
+    def snapshot(self) -> str:
+        """The model lives in the inference node: its last saved checkpoint stands for it."""
+        return self.checkpoint_path
+
+
+@dataclass
+class _Progress:
+    """Steps of the running explore call, kept even when the loop fails half-way."""
+
+    budget: int
+    category: str
+    primitive: str
+    records: list[StepRecord] = field(default_factory=list)
+    pending: ExplorationProgress | None = None
+
+
+class PlannerNode(Node):
+    """Serves explore / manipulate; waits on the other nodes from a MultiThreadedExecutor."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__("planner_node", **kwargs)
+        self.settings = declare_typed_parameters(self, PlannerSettings)
+        get_strategy(self.settings.strategy)  # fail at start-up on a typo
+        self.busy = threading.Lock()
+        self.objects_cv = threading.Condition()
+        self.latest_objects: SegmentedObjects | None = None
+        # user requests in one group; every reply they wait for in another, so the
+        # executor's other threads deliver the replies while a request handler blocks
+        self.user_group = MutuallyExclusiveCallbackGroup()
+        self.io_group = ReentrantCallbackGroup()
+        g = self.io_group
+        self.predict_cli = self.create_client(PredictMaps, "predict_maps", callback_group=g)
+        self.update_cli = self.create_client(UpdateModel, "update_model", callback_group=g)
+        self.scene_cli = self.create_client(LoadScene, "load_scene", callback_group=g)
+        self.exec_cli = ActionClient(self, ExecuteInteraction, "execute_interaction",
+                                     callback_group=g)
+        self.create_subscription(SegmentedObjects, "objects", self.on_objects, LATCHED_QOS,
+                                 callback_group=g)
+        self.progress_pub = self.create_publisher(ExplorationProgress, "exploration_progress",
+                                                  RELIABLE_QOS)
+        self.create_service(Explore, "explore", self.on_explore, callback_group=self.user_group)
+        self.create_service(Manipulate, "manipulate", self.on_manipulate,
+                            callback_group=self.user_group)
+        self.get_logger().info(f"planner ready; {describe(self.settings)}")
+
+    # --- talking to the other nodes ---------------------------------------------------------
+    def call(self, client, request, what: str, timeout: float | None = None):
+        """One service call with a timeout; a refusal (success=false) raises StackError."""
+        s = self.settings
+        if not client.wait_for_service(timeout_sec=s.connect_timeout_s):
+            raise StackError(f"{what}: service not available (is its node running?)")
+        future = client.call_async(request)
+        try:
+            res = wait_future(future, timeout or s.service_timeout_s, what,
+                              alive=client.service_is_ready)
+        except StackError:
+            client.remove_pending_request(future)
+            raise
+        if hasattr(res, "success") and not res.success:
+            raise StackError(f"{what} failed: {res.message}")
+        return res
+
+    def execute(self, interaction: Interaction) -> InteractionOutcome:
+        s = self.settings
+        if not self.exec_cli.wait_for_server(timeout_sec=s.connect_timeout_s):
+            raise StackError("execute_interaction: action server not available (is the "
+                             "executor node running?)")
+        goal = ExecuteInteraction.Goal(interaction=interaction)
+        handle = wait_future(self.exec_cli.send_goal_async(goal), s.execute_timeout_s,
+                             "execute_interaction (goal)")
+        if not handle.accepted:
+            raise StackError("execute_interaction: goal rejected by the executor")
+        try:
+            res = wait_future(handle.get_result_async(), s.execute_timeout_s,
+                              "execute_interaction (result)", alive=self.exec_cli.server_is_ready)
+        except StackError:
+            handle.cancel_goal_async()
+            raise
+        return res.result.outcome
+
+    def on_objects(self, msg: SegmentedObjects) -> None:
+        with self.objects_cv:
+            self.latest_objects = msg
+            self.objects_cv.notify_all()
+
+    def wait_for_objects(self, ids: Sequence[int] | None, newer_than: Time | None,
+                         timeout: float) -> dict[int, Any]:
+        """The segmented objects ``ids`` (None: all) of a frame stamped after ``newer_than``."""
+        deadline = time.monotonic() + timeout
+
+        def ready() -> dict[int, Any] | None:
+            m = self.latest_objects
+            if m is None:
+                return None
+            if newer_than is not None and Time.from_msg(m.header.stamp) < newer_than:
+                return None
+            found = {int(o.id): o for o in m.objects}
+            if ids is None:
+                return found or None
+            return found if all(int(i) in found for i in ids) else None
+
+        with self.objects_cv:
+            while (got := ready()) is None:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    seen = ([int(o.id) for o in self.latest_objects.objects]
+                            if self.latest_objects else "nothing")
+                    want = "any object" if ids is None else f"objects {list(ids)}"
+                    raise StackError(f"segmentation: {want} not seen within {timeout:.0f} s "
+                                     f"(last frame had {seen})")
+                self.objects_cv.wait(min(left, 0.5))
+        return got
+
+    def load_scene(self, category: str, instances: Sequence[int]) -> list[int]:
+        """Clear the simulated scene and load ``instances``; their object ids."""
+        objs = [SceneObject(category=category, instance=int(i),
+                            seed=stable_seed("scene", category, int(i), self.settings.seed))
+                for i in instances]
+        res = self.call(self.scene_cli, LoadScene.Request(objects=objs, clear=True),
+                        "load_scene", self.settings.scene_timeout_s)
+        return [int(i) for i in res.object_ids]
+
+    # --- request handling ---------------------------------------------------------------------
+    def _targets(self, category: str, object_ids: Sequence[int],
+                 instances: Sequence[int]) -> tuple[list[int], Time | None]:
+        """Object ids to act on, loading instances into the scene when asked."""
+        ids = [int(i) for i in object_ids]
+        newer = None
+        if len(instances):
+            if not category:
+                raise ValueError("instances given without a category")
+            cats = load_categories()
+            cats.check_category(category)
+            lo = min(a for a, _ in cats.splits.values())
+            hi = max(b for _, b in cats.splits.values())
+            bad = [int(i) for i in instances if not lo <= int(i) < hi]
+            if bad:
+                raise ValueError(f"instances {bad} out of range [{lo}, {hi})")
+            newer = self.get_clock().now()
+            ids += self.load_scene(category, instances)
+        if not ids:
+            found = self.wait_for_objects(None, None, self.settings.observe_timeout_s)
+            ids = sorted(found)
+        if not ids:
+            raise ValueError("the scene is empty: no objects to act on")
+        return ids, newer
+
+    @staticmethod
+    def _check_primitive(primitive: str) -> None:
+        if primitive not in PRIMITIVES:
+            raise ValueError(f"unknown primitive {primitive!r}; expected one of "
+                             f"{', '.join(PRIMITIVES)}")
+
+    def on_explore(self, req: Explore.Request, res: Explore.Response) -> Explore.Response:
+        if not self.busy.acquire(blocking=False):
+            res.success, res.message = False, "busy: another explore/manipulate is running"
+            return res
+        prog = _Progress(int(req.budget), req.category, req.primitive)
+        model = None
+        t0 = time.perf_counter()
+        try:
+            s = self.settings
+            if req.category:
+                load_categories().check_category(req.category)
+            elif len(req.instances):
+                raise ValueError("category is required with instances")
+            self._check_primitive(req.primitive)
+            if req.budget == 0:
+                raise ValueError("budget must be > 0")
+            if req.budget > s.max_budget:
+                raise ValueError(f"budget {req.budget} exceeds max_budget {s.max_budget}")
+            bar = float(req.similarity_bar) or s.default_bar
+            if not 0.0 < bar <= 1.0:
+                raise ValueError(f"similarity_bar must be in (0, 1], got {bar}")
+            ids, newer = self._targets(req.category, req.object_ids, req.instances)
+            world = RosWorld(self)
+            for i in ids:
+                world.seen_after[i] = newer
+            model = RosModel(self, req.primitive, req.category)
+            model.on_scored.append(lambda mean: self._flush_progress(prog, mean))
+            cfg = ExploreConfig(budget=int(req.budget), sim_bar=bar,
+                                points_per_object=s.points_per_object,
+                                dirs_per_point=s.dirs_per_point, snapshot_budgets=(),
+                                seed=s.seed)
+
+            def on_step(rec: StepRecord) -> None:
+                prog.records.append(rec)
+                prog.pending = self._progress_msg(prog, rec, world.last_outcome)
+
+            self.get_logger().info(f"explore {req.category or 'scene'} objects {ids} "
+                                   f"({req.primitive}, budget {req.budget}, bar {bar})")
+            result = explore(model, world, ids, get_strategy(s.strategy), cfg, req.primitive,
+                             rng=np.random.default_rng(s.seed), on_step=on_step)
+            res.success = True
+            res.reached_similarity_bar = result.stopped == "bar"
+            res.final_mean_similarity = float(result.mean_similarity[-1])
+            stop = "reached the bar" if res.reached_similarity_bar else "spent the budget"
+            res.message = (f"{len(result.steps)} interaction(s) on {len(ids)} object(s), "
+                           f"{sum(r.success for r in result.steps)} successful; {stop} "
+                           f"(mean similarity {res.final_mean_similarity:.3f}) in "
+                           f"{time.perf_counter() - t0:.1f} s")
+        except (ValueError, StackError) as exc:
+            res.success = False
+            res.message = str(exc)
+            if prog.records:
+                res.message += (f" (after {len(prog.records)} interaction(s); the model "
+                                "learned so far is in checkpoint_path)")
+        except Exception as exc:  # noqa: BLE001 - a request must not kill the node
+            res.success, res.message = False, f"internal error: {type(exc).__name__}: {exc}"
+            self.get_logger().error(f"explore failed: {exc!r}")
+        finally:
+            self._flush_progress(prog, None)
+            self.busy.release()
+        res.interactions_used = len(prog.records)
+        res.successes = sum(bool(r.success) for r in prog.records)
+        res.checkpoint_path = model.checkpoint_path if model else ""
+        if res.success:
+            self.get_logger().info(f"explore: {res.message}")
+        else:
+            self.get_logger().warning(f"explore refused/failed: {res.message}")
+        return res
+
+    def _progress_msg(self, prog: _Progress, rec: StepRecord,
+                      outcome: InteractionOutcome | None) -> ExplorationProgress:
+        act = Action(np.asarray(rec.point), np.asarray(rec.up), np.asarray(rec.forward),
+                     primitive=prog.primitive)
+        msg = ExplorationProgress(step=rec.step, budget=prog.budget, category=prog.category,
+                                  interaction=action_to_interaction(act, int(rec.target)),
+                                  predicted_similarity=rec.similarity,
+                                  predicted_affordance=rec.affordance,
+                                  mean_similarity=rec.mean_similarity,
+                                  loss=float(rec.losses.get("loss", 0.0)))
+        if outcome is not None:
+            msg.outcome = outcome
+        return msg
+
+    def _flush_progress(self, prog: _Progress, mean_after: float | None) -> None:
+        """Publish the pending step once the similarity after its update is known (the
+        loop's next scoring); at the end, with the value from before the update."""
+        msg, prog.pending = prog.pending, None
+        if msg is None:
+            return
+        if mean_after is not None:
+            msg.mean_similarity = float(mean_after)
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self.progress_pub.publish(msg)
+
+    def on_manipulate(self, req: Manipulate.Request,
+                      res: Manipulate.Response) -> Manipulate.Response:
+        if not self.busy.acquire(blocking=False):
+            res.success, res.message = False, "busy: another explore/manipulate is running"
+            return res
+        t0 = time.perf_counter()
+        try:
+            s = self.settings
+            self._check_primitive(req.primitive)
+            if req.category:
+                load_categories().check_category(req.category)
+            ids, newer = self._targets(req.category, req.object_ids, req.instances)
+            world = RosWorld(self)
+            for oid in ids:
+                world.seen_after[oid] = newer
+                cloud = world.observe(oid)
+                maps = self.call(self.predict_cli, PredictMaps.Request(
+                    clouds=[cloud.msg], object_ids=[oid], primitive=req.primitive,
+                    num_directions=s.manipulate_directions, num_best=1,
+                    seed=stable_seed("manipulate", oid, s.seed)), "predict_maps")
+                best = maps.maps[0].best_actions[0]
+                best.object_id, best.primitive = oid, req.primitive
+                outcome = self.execute(best)
+                res.interactions.append(best)
+                res.predicted_affordances.append(float(maps.maps[0].best_scores[0]))
+                res.outcomes.append(outcome)
+            n_ok = sum(o.success for o in res.outcomes)
+            res.success = n_ok == len(res.outcomes)
+            res.message = (f"{n_ok}/{len(res.outcomes)} object(s) moved "
+                           f"({req.primitive}) in {time.perf_counter() - t0:.1f} s")
+        except (ValueError, StackError) as exc:
+            res.success, res.message = False, str(exc)
+        except Exception as exc:  # noqa: BLE001 - a request must not kill the node
+            res.success, res.message = False, f"internal error: {type(exc).__name__}: {exc}"
+            self.get_logger().error(f"manipulate failed: {exc!r}")
+        finally:
+            self.busy.release()
+        self.get_logger().info(f"manipulate: {res.message}")
+        return res
+
+
+def main(args: list[str] | None = None) -> None:
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = PlannerNode()
+        executor = MultiThreadedExecutor(num_threads=4)
+        executor.add_node(node)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    main()
