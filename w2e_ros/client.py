@@ -63,6 +63,7 @@ class Step:
     motion: float
     mean_similarity: float
     loss: float
+    joint_motion: list[float] = field(default_factory=list)  # every joint of the object
 
 
 @dataclass
@@ -89,6 +90,7 @@ class Outcome:
     motion: float
     moved_part: str
     reason: str
+    joint_motion: list[float] = field(default_factory=list)  # every joint of the object
 
 
 @dataclass
@@ -191,7 +193,7 @@ class W2EClient:
         step = Step(int(m.step), Act.from_msg(m.interaction), float(m.predicted_similarity),
                     float(m.predicted_affordance), bool(m.outcome.valid),
                     bool(m.outcome.success), float(m.outcome.motion),
-                    float(m.mean_similarity), float(m.loss))
+                    float(m.mean_similarity), float(m.loss), list(m.outcome.joint_motion))
         self._steps.append(step)
         if self._on_progress:
             self._on_progress(step)
@@ -236,7 +238,7 @@ class W2EClient:
         t0 = time.perf_counter()
         r = self._call(self._manipulate, req, timeout)
         outs = [Outcome(Act.from_msg(i), float(a), bool(o.valid), bool(o.success),
-                        float(o.motion), o.moved_part, o.reason)
+                        float(o.motion), o.moved_part, o.reason, list(o.joint_motion))
                 for i, a, o in zip(r.interactions, r.predicted_affordances, r.outcomes,
                                    strict=True)]
         return ManipulateResult(r.success, r.message, outs, time.perf_counter() - t0)
