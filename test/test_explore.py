@@ -9,7 +9,7 @@ from synthetic import Cloud, RuleWorld, synthetic_data
 
 from sim_bridge.types import TrialResult
 from w2e_ros.core.config import ExploreConfig, ModelConfig
-from w2e_ros.core.explore import W2EExplorer, explore, sample_candidates
+from w2e_ros.core.explore import Executed, W2EExplorer, explore, sample_candidates
 from w2e_ros.core.model import W2EModel
 from w2e_ros.core.strategies import get_strategy
 
@@ -99,6 +99,32 @@ def test_similarity_strategy_executes_the_lowest_similarity_action(novel, replay
     np.testing.assert_allclose(action.up, seen["cands"][obj].up[i], atol=1e-6)
 
 
+def test_budget_counts_interactions_per_category_one_update_per_round(novel, replay):
+    exp = _explorer(replay, sim_bias=-8.0, budget=2, snapshot_budgets=(1, 2))
+    world = RuleWorld(novel)
+    updates = []
+
+    class Counting:
+        def score(self, clouds, cands):
+            return exp.score(clouds, cands)
+
+        def update(self, executed):
+            updates.append(len(executed))
+            return exp.update(executed)
+
+        def snapshot(self):
+            return exp.snapshot()
+
+    group = {i: str(novel.category[i]) for i in range(6)}
+    res = explore(Counting(), world, list(range(6)), get_strategy("similarity"), exp.cfg,
+                  "push", group_of=group.__getitem__)
+    assert updates == [2, 2]  # two categories: one interaction each, one update per round
+    assert [(s.round, s.group) for s in res.steps] == [
+        (1, "kettle"), (1, "bucket"), (2, "kettle"), (2, "bucket")]
+    assert all(str(novel.category[t]) == s.group
+               for (t, _), s in zip(world.executed, res.steps, strict=True))
+
+
 def test_none_strategy_spends_nothing_and_snapshots_the_initial_model(novel, replay):
     exp = _explorer(replay)
     world = RuleWorld(novel)
@@ -114,7 +140,7 @@ def test_fine_tuning_fits_the_explored_interactions(novel, replay):
     cands = sample_candidates(cloud, 16, 2, np.random.default_rng(1), mask=cloud.movable)
     i = int(np.argmin(cands.up[:, 2]))  # straight into the handle: a success
     before = exp.score([cloud], [cands])[0].affordance[i]
-    exp.update(cloud, cands, i, TrialResult(True, True, np.array([0.05]), 0, "door"))
+    exp.update([Executed(cloud, cands, i, TrialResult(True, True, np.array([0.05]), 0, "door"))])
     after = exp.score([cloud], [cands])[0].affordance[i]
     assert after > max(before, 0.6)
 

@@ -83,11 +83,12 @@ class TrainConfig:
 class ExploreConfig:
     """Few-shot exploration (paper §3.3 and supplementary)."""
 
-    budget: int = 5  # interactions in total
+    budget: int = 5  # interactions per category (rounds)
     sim_bar: float = 0.9  # stop when the mean similarity exceeds it
     points_per_object: int = 256  # candidate contact points per object and step
     dirs_per_point: int = 8  # candidate (direction, orientation) per point
-    finetune_steps: int = 8  # gradient steps after each interaction
+    finetune_steps: int = 8  # gradient steps after each round of interactions
+    finetune_clouds: int = 12  # explored clouds per fine-tune step (newest round always in)
     finetune_lr: float = 1e-3
     replay_fraction: float = 0.01  # share of the training interactions replayed
     replay_clouds: int = 2  # replay observations per fine-tune step

@@ -1,11 +1,15 @@
 """The few-shot exploration loop (paper §3.3): one implementation for ``w2e fewshot`` and the
 ROS planner node.
 
-Each step: observe the candidate objects, sample many (point, direction, orientation)
-actions on each, let the strategy pick one, execute it, fine-tune both heads on what was
-explored so far plus a replay of ~1 % of the training data, and stop when the mean
-similarity passes the bar or the budget is spent. The model and the world are protocols:
-``W2EExplorer`` and ``SimWorld`` offline, the inference and executor nodes on the robot.
+The budget counts interactions per category. Each round: observe the candidate objects,
+sample many (point, direction, orientation) actions on each, let the strategy pick one
+action per category still exploring (one category: one action), execute them, fine-tune
+both heads on what was explored so far plus a replay of ~1 % of the training data; a
+category stops when its mean similarity passes the bar, the run when every category has
+stopped or spent its budget. With all 11 novel categories at once a round costs one model
+update for 11 interactions, which is what keeps the offline benchmark affordable on a CPU.
+The model and the world are protocols: ``W2EExplorer`` and ``SimWorld`` offline, the
+inference and executor nodes on the robot.
 """
 
 from __future__ import annotations
@@ -72,14 +76,24 @@ def sample_candidates(cloud: CloudLike, num_points: int, dirs_per_point: int,
     return Candidates(pidx.astype(np.int64), up, sample_forward(up, rng))
 
 
+@dataclass
+class Executed:
+    """One executed interaction: the cloud it was chosen on, the action and what happened."""
+
+    cloud: CloudLike
+    candidates: Candidates
+    index: int  # into candidates
+    result: TrialResult
+    update_affordance: bool = True  # False: only the similarity head learns from it
+
+
 class ExplorationModel(Protocol):
     """What the loop needs from a model."""
 
     def score(self, clouds: Sequence[CloudLike],
               candidates: Sequence[Candidates]) -> list[Scored]: ...
 
-    def update(self, cloud: CloudLike, candidates: Candidates, index: int,
-               result: TrialResult) -> dict[str, float]: ...
+    def update(self, executed: Sequence[Executed]) -> dict[str, float]: ...
 
     def snapshot(self) -> Any: ...
 
@@ -94,14 +108,16 @@ class ExplorationWorld(Protocol):
 
 @dataclass
 class StepRecord:
-    step: int
+    step: int  # interaction number in the run
+    round: int  # = interactions per category so far
+    group: str  # the category (or group) the interaction explored
     target: str
     point: list[float]
     up: list[float]
     forward: list[float]
     affordance: float
     similarity: float
-    mean_similarity: float  # over all candidates, before this step's update
+    mean_similarity: float  # over the group's candidates, before this round's update
     valid: bool
     success: bool
     motion: float
@@ -114,8 +130,8 @@ class ExplorationResult:
     strategy: str
     steps: list[StepRecord]
     stopped: str  # "bar" | "budget" | "none"
-    mean_similarity: list[float]  # before each step, then after the last
-    snapshots: dict[int, Any]  # budget -> model snapshot after that many interactions
+    mean_similarity: list[float]  # over all candidates, before each round and after the last
+    snapshots: dict[int, Any]  # budget -> model snapshot after that many rounds
 
     def to_dict(self) -> dict:
         return {"strategy": self.strategy, "stopped": self.stopped,
@@ -130,51 +146,71 @@ def _name(target: Any) -> str:
 def explore(model: ExplorationModel, world: ExplorationWorld, targets: Sequence[Any],
             strategy: Strategy, cfg: ExploreConfig, primitive: str,
             rng: np.random.Generator | None = None,
-            on_step: Callable[[StepRecord], None] | None = None) -> ExplorationResult:
-    """Explore ``targets`` with ``strategy`` until the bar or ``cfg.budget``; snapshots of the
-    model after each of ``cfg.snapshot_budgets`` interactions (an early stop fills the later
-    budgets with the final model), so every budget is evaluated from one run."""
+            on_step: Callable[[StepRecord], None] | None = None,
+            group_of: Callable[[Any], str] | None = None) -> ExplorationResult:
+    """Explore ``targets`` with ``strategy`` for ``cfg.budget`` rounds (one interaction per
+    group and round; groups are categories, ``group_of`` says how to read a target's) or
+    until every group's mean similarity passes the bar. Snapshots of the model after each of
+    ``cfg.snapshot_budgets`` rounds (an early stop fills the later budgets with the final
+    model), so every budget is evaluated from one run."""
     rng = rng or np.random.default_rng(cfg.seed)
+    group_of = group_of or (lambda t: str(getattr(t, "category", "all")))
+    groups = list(dict.fromkeys(group_of(t) for t in targets))
+    members = {g: [i for i, t in enumerate(targets) if group_of(t) == g] for g in groups}
+    active = list(groups) if strategy.explores else []
     clouds = [world.observe(t) for t in targets]
     records: list[StepRecord] = []
     means: list[float] = []
     snapshots: dict[int, Any] = {0: model.snapshot()}
     stopped = "budget" if strategy.explores else "none"
     budget = cfg.budget if strategy.explores else 0
-    for step in range(budget + 1):
+    for rnd in range(budget + 1):
         t0 = time.perf_counter()
         cands = [sample_candidates(c, cfg.points_per_object, cfg.dirs_per_point, rng,
                                    getattr(c, "movable", None) if cfg.movable_only else None)
                  for c in clouds]
         scored = model.score(clouds, cands)
-        mean_sim = float(np.mean(np.concatenate([s.similarity for s in scored])))
-        means.append(mean_sim)
-        if step == budget:
+        means.append(float(np.mean(np.concatenate([s.similarity for s in scored]))))
+        if rnd == budget:
             break
-        if strategy.stops_at_bar and mean_sim > cfg.sim_bar:
-            stopped = "bar"
-            break
-        obj, i = strategy.choose(scored, rng)
-        action = cands[obj].action(clouds[obj], i, primitive)
-        result = world.execute(targets[obj], action)
-        losses = model.update(clouds[obj], cands[obj], i, result)
-        rec = StepRecord(
-            step=step + 1, target=_name(targets[obj]), point=action.point.tolist(),
-            up=action.up.tolist(), forward=action.forward.tolist(),
-            affordance=float(scored[obj].affordance[i]),
-            similarity=float(scored[obj].similarity[i]), mean_similarity=mean_sim,
-            valid=bool(result.valid), success=bool(result.success),
-            motion=float(np.max(np.abs(result.motion))) if np.size(result.motion) else 0.0,
-            seconds=time.perf_counter() - t0, losses=losses)
-        records.append(rec)
-        log.info("step %d %s: %s aff %.2f sim %.2f (mean sim %.3f) -> %s", rec.step,
-                 strategy.name, rec.target, rec.affordance, rec.similarity, mean_sim,
-                 "success" if rec.success else ("fail" if rec.valid else "invalid"))
-        if on_step:
-            on_step(rec)
-        if rec.step in cfg.snapshot_budgets:
-            snapshots[rec.step] = model.snapshot()
-        clouds[obj] = world.observe(targets[obj])  # the world decides whether it changed
+        group_mean = {g: float(np.mean(np.concatenate([scored[i].similarity
+                                                       for i in members[g]])))
+                      for g in active}
+        if strategy.stops_at_bar:
+            active = [g for g in active if group_mean[g] <= cfg.sim_bar]
+            if not active:
+                stopped = "bar"
+                break
+        executed: list[Executed] = []
+        for g in active:
+            k, i = strategy.choose([scored[j] for j in members[g]], rng)
+            obj = members[g][k]
+            action = cands[obj].action(clouds[obj], i, primitive)
+            result = world.execute(targets[obj], action)
+            executed.append(Executed(clouds[obj], cands[obj], i, result))
+            records.append(StepRecord(
+                step=len(records) + 1, round=rnd + 1, group=g, target=_name(targets[obj]),
+                point=action.point.tolist(), up=action.up.tolist(),
+                forward=action.forward.tolist(), affordance=float(scored[obj].affordance[i]),
+                similarity=float(scored[obj].similarity[i]), mean_similarity=group_mean[g],
+                valid=bool(result.valid), success=bool(result.success),
+                motion=float(np.max(np.abs(result.motion))) if np.size(result.motion) else 0.0,
+                seconds=0.0))
+        losses = model.update(executed)
+        seconds = (time.perf_counter() - t0) / max(len(executed), 1)
+        for rec in records[-len(executed):]:
+            rec.losses, rec.seconds = losses, seconds
+            log.info("round %d %s %s: %s aff %.2f sim %.2f (mean sim %.3f) -> %s", rec.round,
+                     strategy.name, rec.group, rec.target, rec.affordance, rec.similarity,
+                     rec.mean_similarity,
+                     "success" if rec.success else ("fail" if rec.valid else "invalid"))
+            if on_step:
+                on_step(rec)
+        if rnd + 1 in cfg.snapshot_budgets:
+            snapshots[rnd + 1] = model.snapshot()
+        for e in executed:  # the world decides whether the object changed
+            obj = next(j for j, c in enumerate(clouds) if c is e.cloud)
+            clouds[obj] = world.observe(targets[obj])
     final = model.snapshot() if records else snapshots[0]
     for b in cfg.snapshot_budgets:
         snapshots.setdefault(b, final)
@@ -187,6 +223,7 @@ class Explored:
     point_index: int
     action: np.ndarray  # (6,)
     success: bool
+    update_affordance: bool = True
 
 
 class W2EExplorer:
@@ -232,30 +269,45 @@ class W2EExplorer:
                 out.append(Scored(torch.sigmoid(aff).cpu().numpy(), sim.cpu().numpy()))
         return out
 
-    def _explored_batch(self) -> Batch:
-        clouds = np.stack([e.cloud for e in self.explored]).astype(np.float32)
-        n = len(self.explored)
+    def _explored_batch(self, rows: np.ndarray) -> Batch:
+        chosen = [self.explored[r] for r in rows]
+        clouds = np.stack([e.cloud for e in chosen]).astype(np.float32)
+        n = len(chosen)
         t = lambda a, dt=torch.float32: torch.as_tensor(np.asarray(a), dtype=dt,  # noqa: E731
                                                        device=self.device)
         off = 0 if self.replay is None else self.replay.num_interactions
         return Batch(clouds=t(clouds), cloud_of=t(np.arange(n), torch.long),
-                     point_index=t([e.point_index for e in self.explored], torch.long),
-                     actions=t(np.stack([e.action for e in self.explored])),
-                     success=t([float(e.success) for e in self.explored]),
-                     interaction=off + np.arange(n), aff_mask=t(np.ones(n), torch.bool),
+                     point_index=t([e.point_index for e in chosen], torch.long),
+                     actions=t(np.stack([e.action for e in chosen])),
+                     success=t([float(e.success) for e in chosen]),
+                     interaction=off + np.asarray(rows),
+                     aff_mask=t([e.update_affordance for e in chosen], torch.bool),
                      sim_mask=t(np.full(n, self.train_similarity), torch.bool))
 
-    def update(self, cloud: CloudLike, candidates: Candidates, index: int,
-               result: TrialResult) -> dict[str, float]:
-        """Fine-tune both heads on everything explored so far + a replay batch."""
-        self.explored.append(Explored(
-            np.asarray(cloud.points, dtype=np.float32), int(candidates.point_index[index]),
-            encode_rotation(candidates.up[index:index + 1], candidates.forward[index:index + 1])[0],
-            bool(result.success)))
-        self.model.train()
+    def update(self, executed: Sequence[Executed]) -> dict[str, float]:
+        """Remember the executed interactions, then fine-tune both heads on the explored ones
+        (the newest always, older ones sampled up to ``cfg.finetune_clouds`` clouds) plus a
+        replay batch of the training data."""
+        for e in executed:
+            self.explored.append(Explored(
+                np.asarray(e.cloud.points, dtype=np.float32),
+                int(e.candidates.point_index[e.index]),
+                encode_rotation(e.candidates.up[e.index:e.index + 1],
+                                e.candidates.forward[e.index:e.index + 1])[0],
+                bool(e.result.success), bool(e.update_affordance)))
         stats: dict[str, float] = {}
+        if not self.explored or self.cfg.finetune_steps <= 0:
+            return stats
+        self.model.train()
+        n, newest = len(self.explored), len(executed)
+        cap = max(self.cfg.finetune_clouds, newest)
         for _ in range(self.cfg.finetune_steps):
-            parts = [self._explored_batch()]
+            rows = np.arange(n - newest, n)
+            if n > newest and cap > newest:
+                older = self.rng.choice(n - newest, size=min(n - newest, cap - newest),
+                                        replace=False)
+                rows = np.concatenate([np.sort(older), rows])
+            parts = [self._explored_batch(rows)]
             if self.sampler is not None:
                 parts.append(make_batch(self.replay, self.sampler.sample_rows(), self.aff_cats,
                                         self.sim_cats, self.device))

@@ -38,7 +38,7 @@ from w2e_msgs.srv import PredictMaps, UpdateModel
 from sim_bridge.types import PRIMITIVES, Action
 from w2e_ros.core.actions import BASE_PRIMITIVES, sample_forward, sample_up
 from w2e_ros.core.config import ExploreConfig
-from w2e_ros.core.explore import Candidates, W2EExplorer
+from w2e_ros.core.explore import Candidates, Executed, W2EExplorer
 from w2e_ros.core.model import W2EModel, default_device, load_model, save_model
 from w2e_ros.core.pointcloud import check_cloud, fps_indices
 from w2e_ros.paths import default_checkpoint
@@ -94,20 +94,6 @@ def base_primitive(primitive: str) -> str:
     return primitive.split("-")[0]
 
 
-class _Explorer(W2EExplorer):
-    """The core's explorer plus UpdateModel's per-interaction ``update_affordance`` flag:
-    interactions sent with it false train only the similarity head (as C_sim categories)."""
-
-    def __init__(self, *args, **kwargs) -> None:
-        super().__init__(*args, **kwargs)
-        self.aff_flags: list[bool] = []
-
-    def _explored_batch(self):
-        batch = super()._explored_batch()
-        batch.aff_mask = torch.as_tensor(self.aff_flags, dtype=torch.bool, device=self.device)
-        return batch
-
-
 @dataclass
 class _Served:
     """One loaded model and the state of its few-shot adaptation."""
@@ -116,7 +102,7 @@ class _Served:
     source: Path
     model: W2EModel
     meta: dict
-    explorer: _Explorer
+    explorer: W2EExplorer
     updates: int = 0
 
 
@@ -198,7 +184,7 @@ class InferenceNode(Node):
                                         primitive)
         cfg = ExploreConfig(finetune_steps=s.finetune_steps, finetune_lr=s.finetune_lr,
                             replay_fraction=s.replay_fraction, seed=s.seed)
-        explorer = _Explorer(model, cfg, replay=replay, aff_categories=aff_cats,
+        explorer = W2EExplorer(model, cfg, replay=replay, aff_categories=aff_cats,
                              sim_categories=sim_cats, train_similarity=True, seed=s.seed)
         self.load_errors.pop(primitive, None)
         self.get_logger().info(
@@ -374,22 +360,21 @@ class InferenceNode(Node):
         (cloud,) = self._read_clouds([req.cloud])
         ex = served.explorer
         steps = int(req.steps) or self.settings.finetune_steps
+        executed: list[Executed] = []
+        for j, (action, outcome) in enumerate(zip(actions, req.outcomes, strict=True)):
+            d = np.linalg.norm(cloud.points - action.point[None].astype(np.float32), axis=1)
+            pi = int(np.argmin(d))
+            if d[pi] > 0.05:
+                raise ValueError(f"interaction {j}: contact point is {d[pi]:.3f} m from "
+                                 "the nearest cloud point (wrong cloud or frame?)")
+            cand = Candidates(np.array([pi]), action.up[None].astype(np.float32),
+                              action.forward[None].astype(np.float32))
+            executed.append(Executed(cloud, cand, 0, outcome_to_trial_result(outcome),
+                                     update_affordance=bool(req.update_affordance)))
         base_cfg = ex.cfg
-        stats: dict[str, float] = {}
+        ex.cfg = dataclasses.replace(base_cfg, finetune_steps=steps)
         try:
-            for j, (action, outcome) in enumerate(zip(actions, req.outcomes, strict=True)):
-                d = np.linalg.norm(cloud.points - action.point[None].astype(np.float32), axis=1)
-                pi = int(np.argmin(d))
-                if d[pi] > 0.05:
-                    raise ValueError(f"interaction {j}: contact point is {d[pi]:.3f} m from "
-                                     "the nearest cloud point (wrong cloud or frame?)")
-                cand = Candidates(np.array([pi]), action.up[None].astype(np.float32),
-                                  action.forward[None].astype(np.float32))
-                # train once, after the last interaction is added (the core trains on all
-                # explored so far); earlier ones are only remembered
-                ex.cfg = dataclasses.replace(base_cfg, finetune_steps=steps if j == n - 1 else 0)
-                ex.aff_flags.append(bool(req.update_affordance))
-                stats = ex.update(cloud, cand, 0, outcome_to_trial_result(outcome))
+            stats = ex.update(executed)
         finally:
             ex.cfg = base_cfg
         served.updates += 1

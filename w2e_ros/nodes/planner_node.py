@@ -42,7 +42,7 @@ from w2e_msgs.srv import Explore, LoadScene, Manipulate, PredictMaps, UpdateMode
 from sim_bridge.types import PRIMITIVES, Action, TrialResult
 from w2e_ros.core.categories import load_categories
 from w2e_ros.core.config import ExploreConfig
-from w2e_ros.core.explore import Candidates, StepRecord, explore
+from w2e_ros.core.explore import Candidates, Executed, StepRecord, explore
 from w2e_ros.core.sim_world import stable_seed
 from w2e_ros.core.strategies import Scored, get_strategy
 from w2e_ros.ros.conversions import (
@@ -78,6 +78,8 @@ class PlannerSettings:
     observe_timeout_s: float = param(15.0, "longest wait for a segmented cloud of an object",
                                      min=0.1)
     connect_timeout_s: float = param(5.0, "longest wait for a server to appear", min=0.0)
+    settle_s: float = param(2.0, "after a fresh frame shows some target objects, how long to "
+                            "wait for the others before acting on the visible ones", min=0.0)
     fresh_after_execute: bool = param(True, "after an interaction, observe the object in a "
                                       "camera frame taken after it (the part may have moved)")
     seed: int = param(0, "seed of the candidate sampling and of the scene start states")
@@ -175,18 +177,22 @@ class RosModel:
             cb(self.last_mean)
         return out
 
-    def update(self, cloud: ObservedCloud, candidates: Candidates, index: int,
-               result: TrialResult) -> dict[str, float]:
-        action = candidates.action(cloud, index, self.primitive)
-        req = UpdateModel.Request(
-            cloud=cloud.msg, interactions=[action_to_interaction(action, cloud.object_id)],
-            outcomes=[trial_result_to_outcome(result)], category=self.category,
-            update_affordance=True, steps=self.node.settings.update_steps,
-            save_checkpoint=True)
-        res = self.node.call(self.node.update_cli, req, "update_model")
-        self.checkpoint_path = res.checkpoint_path or self.checkpoint_path
-        return {"loss": res.loss, "loss_aff": res.affordance_loss,
-                "loss_sim": res.similarity_loss}
+    def update(self, executed: Sequence[Executed]) -> dict[str, float]:
+        """One update_model call per observed cloud; the last one saves the checkpoint."""
+        stats: dict[str, float] = {}
+        for k, e in enumerate(executed):
+            action = e.candidates.action(e.cloud, e.index, self.primitive)
+            req = UpdateModel.Request(
+                cloud=e.cloud.msg,
+                interactions=[action_to_interaction(action, e.cloud.object_id)],
+                outcomes=[trial_result_to_outcome(e.result)], category=self.category,
+                update_affordance=e.update_affordance, steps=self.node.settings.update_steps,
+                save_checkpoint=k == len(executed) - 1)
+            res = self.node.call(self.node.update_cli, req, "update_model")
+            self.checkpoint_path = res.checkpoint_path or self.checkpoint_path
+            stats = {"loss": res.loss, "loss_aff": res.affordance_loss,
+                     "loss_sim": res.similarity_loss}
+        return stats
 
     def snapshot(self) -> str:
         """The model lives in the inference node: its last saved checkpoint stands for it."""
@@ -287,7 +293,7 @@ class PlannerNode(Node):
             found = {int(o.id): o for o in m.objects}
             if ids is None:
                 return found or None
-            return found if all(int(i) in found for i in ids) else None
+            return found if all(int(i) in found for i in ids) else None  # [] -> any frame
 
         with self.objects_cv:
             while (got := ready()) is None:
@@ -335,6 +341,25 @@ class PlannerNode(Node):
             raise ValueError("the scene is empty: no objects to act on")
         return ids, newer
 
+    def visible(self, ids: Sequence[int], newer_than: Time | None) -> tuple[list[int], list[int]]:
+        """(seen, missing) targets: the segmentation may not see every object (occlusion in a
+        row of objects, too few points); act on the seen ones instead of failing."""
+        s = self.settings
+        first = self.wait_for_objects([], newer_than, s.observe_timeout_s)  # a fresh frame
+        if all(i in first for i in ids):
+            return list(ids), []
+        try:
+            found = self.wait_for_objects(ids, newer_than, s.settle_s)
+        except StackError:
+            with self.objects_cv:
+                last = self.latest_objects
+            found = {int(o.id): o for o in last.objects} if last else {}
+        seen = [i for i in ids if i in found]
+        if not seen:
+            raise StackError(f"segmentation: none of the objects {list(ids)} is seen (last "
+                             f"frame had {sorted(found)})")
+        return seen, [i for i in ids if i not in found]
+
     @staticmethod
     def _check_primitive(primitive: str) -> None:
         if primitive not in PRIMITIVES:
@@ -363,6 +388,7 @@ class PlannerNode(Node):
             if not 0.0 < bar <= 1.0:
                 raise ValueError(f"similarity_bar must be in (0, 1], got {bar}")
             ids, newer = self._targets(req.category, req.object_ids, req.instances)
+            ids, missing = self.visible(ids, newer)
             world = RosWorld(self)
             for i in ids:
                 world.seen_after[i] = newer
@@ -388,7 +414,9 @@ class PlannerNode(Node):
             res.message = (f"{len(result.steps)} interaction(s) on {len(ids)} object(s), "
                            f"{sum(r.success for r in result.steps)} successful; {stop} "
                            f"(mean similarity {res.final_mean_similarity:.3f}) in "
-                           f"{time.perf_counter() - t0:.1f} s")
+                           f"{time.perf_counter() - t0:.1f} s" +
+                           (f"; objects {missing} not seen by the segmentation, skipped"
+                            if missing else ""))
         except (ValueError, StackError) as exc:
             res.success = False
             res.message = str(exc)
@@ -447,8 +475,16 @@ class PlannerNode(Node):
             if req.category:
                 load_categories().check_category(req.category)
             ids, newer = self._targets(req.category, req.object_ids, req.instances)
+            _, missing = self.visible(ids, newer)
             world = RosWorld(self)
             for oid in ids:
+                if oid in missing:  # keep the request order; say why nothing was done
+                    res.interactions.append(Interaction(object_id=oid, primitive=req.primitive))
+                    res.predicted_affordances.append(0.0)
+                    res.outcomes.append(InteractionOutcome(
+                        valid=False, joint_index=-1,
+                        reason="not seen by the segmentation (occluded or too few points)"))
+                    continue
                 world.seen_after[oid] = newer
                 cloud = world.observe(oid)
                 maps = self.call(self.predict_cli, PredictMaps.Request(
