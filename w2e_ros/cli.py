@@ -292,9 +292,71 @@ def _run_benchmark(a: argparse.Namespace) -> int:
     return 0
 
 
+def _add_demo(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "demo", help="bring up the ROS stack, manipulate / explore / manipulate a novel category",
+        description="Success rate on unseen test instances before and after few-shot "
+                    "exploration, through the ROS stack; heatmap PNGs before/after.")
+    from w2e_ros.demo import add_arguments
+
+    add_arguments(p)
+    p.set_defaults(func=lambda a: __import__("w2e_ros.demo", fromlist=["run"]).run(a))
+
+
+def _add_bringup(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("bringup", help="start the ROS node stack (python -m w2e_ros.bringup)",
+                       add_help=False)
+    p.add_argument("args", nargs=argparse.REMAINDER, help="see w2e bringup --help")
+    p.set_defaults(func=lambda a: __import__("w2e_ros.bringup", fromlist=["main"]).main(a.args))
+
+
+def _add_record(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("record", help="record stack topics to an MCAP rosbag",
+                       description="Record topics (serialized, with their message definitions "
+                                   "and QoS) to an MCAP file that ros2 bag / Foxglove read.")
+    p.add_argument("out", help="output .mcap file")
+    p.add_argument("--topics", nargs="+", default=None,
+                   help="topics (default: camera/points objects object_joint_states "
+                        "exploration_progress affordance_map similarity_map)")
+    p.add_argument("--duration", type=float, default=0.0, help="seconds (0: until Ctrl-C)")
+    p.add_argument("--namespace", default="", help="namespace of the stack")
+    p.add_argument("--domain-id", type=int, default=None)
+    p.add_argument("--discovery-timeout", type=float, default=10.0,
+                   help="seconds to wait for the topics' publishers")
+    p.set_defaults(func=_run_record)
+
+
+def _run_record(a: argparse.Namespace) -> int:
+    from w2e_ros.ros.bag import DEFAULT_TOPICS, record_main
+
+    return record_main(a.out, list(a.topics or DEFAULT_TOPICS), a.duration, a.namespace,
+                       a.domain_id, a.discovery_timeout)
+
+
+def _add_replay(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("replay", help="publish an MCAP rosbag onto its topics",
+                       description="Replay recorded messages with their recorded QoS and "
+                                   "timing (scaled by --rate; 0: as fast as possible).")
+    p.add_argument("bag", help=".mcap file (w2e record)")
+    p.add_argument("--rate", type=float, default=1.0, help="speed factor (0: no waiting)")
+    p.add_argument("--topics", nargs="+", default=None, help="only these topics")
+    p.add_argument("--loop", action="store_true", help="replay until Ctrl-C")
+    p.add_argument("--namespace", default="")
+    p.add_argument("--domain-id", type=int, default=None)
+    p.set_defaults(func=_run_replay)
+
+
+def _run_replay(a: argparse.Namespace) -> int:
+    from w2e_ros.ros.bag import replay_main
+
+    return replay_main(a.bag, a.rate, a.topics, a.loop, a.namespace, a.domain_id)
+
+
 VERBS: list[Callable[[argparse._SubParsersAction], None]] = [_add_collect, _add_train,
                                                               _add_fewshot, _add_evaluate,
-                                                              _add_benchmark]
+                                                              _add_benchmark, _add_demo,
+                                                              _add_bringup, _add_record,
+                                                              _add_replay]
 
 
 def build_parser() -> argparse.ArgumentParser:
