@@ -140,8 +140,13 @@ def test_recorded_bridge_clouds_replayed_into_segmentation_give_objects(tmp_path
         node.create_subscription(SegmentedObjects, "objects", objects.append, LATCHED_QOS)
         with Stack(nodes=["segmentation"], env=env, ready_timeout=90.0, output=None):
             _wait(lambda: node.count_subscribers("camera/points") > 0, 30, "segmentation")
-            print(replay(g.node("player"), path, rate=2.0))
-            _wait(lambda: objects and objects[-1].objects, 30, "segmented objects")
+            # camera clouds are best effort (~1 MB each): under load one may be dropped, as
+            # from the live camera; replay the recording in a loop like a stream until seen
+            player, end = g.node("player"), time.monotonic() + 60
+            while not (objects and objects[-1].objects) and time.monotonic() < end:
+                replay(player, path, rate=2.0)
+                time.sleep(0.5)
+            assert objects and objects[-1].objects, "no segmented objects from the replay"
         assert {o.id for o in objects[-1].objects} == ids
         assert cloud_to_arrays(objects[-1].objects[0].cloud).points.shape[1] == 3
     finally:

@@ -279,6 +279,8 @@ def replay(node: Node, path: str | Path, rate: float = 1.0,
                     time.sleep(delay)
             pub.publish(bytes(message.data))
             counts[channel.topic] += 1
+    for pub in pubs.values():
+        node.destroy_publisher(pub)
     return counts
 
 
