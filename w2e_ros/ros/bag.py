@@ -279,6 +279,7 @@ def replay(node: Node, path: str | Path, rate: float = 1.0,
                     time.sleep(delay)
             pub.publish(bytes(message.data))
             counts[channel.topic] += 1
+    time.sleep(0.2)  # let the last (reliable) messages go out before the writers go
     for pub in pubs.values():
         node.destroy_publisher(pub)
     return counts
