@@ -264,6 +264,8 @@ def _add_benchmark(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--points", type=int, default=256, help="candidate points per object")
     p.add_argument("--dirs", type=int, default=8, help="candidate actions per point")
     p.add_argument("--finetune-steps", type=int, default=8)
+    p.add_argument("--bar", type=float, default=0.9,
+                   help="similarity bar that ends exploration early (>1: never)")
     p.add_argument("--no-heatmaps", action="store_true")
     p.add_argument("--threads", type=int, default=2)
     p.set_defaults(func=_run_benchmark)
@@ -286,7 +288,7 @@ def _run_benchmark(a: argparse.Namespace) -> int:
         explore_objects=a.explore_objects, test_objects=a.test_objects,
         eval_points=a.points, eval_dirs=a.dirs, heatmaps=not a.no_heatmaps,
         explore=ExploreConfig(points_per_object=a.points, dirs_per_point=a.dirs,
-                              finetune_steps=a.finetune_steps))
+                              finetune_steps=a.finetune_steps, sim_bar=a.bar))
     run_benchmark(cfg)
     print((Path(a.out) / "tables.md").read_text())
     return 0
