@@ -128,12 +128,24 @@ class RosWorld:
         self.seen_after: dict[int, Time] = {}  # object -> earliest acceptable frame stamp
         self.last_outcome: InteractionOutcome | None = None
         self.executed = 0
+        self.last_cloud: dict[int, ObservedCloud] = {}
 
     def observe(self, target: int) -> ObservedCloud:
-        msg = self.node.wait_for_objects([target], self.seen_after.get(target),
-                                         self.s.observe_timeout_s)[target]
+        """The object's cloud in a frame taken after its last interaction. An object the
+        segmentation loses after we touched it (moved out of view, occluded) keeps its last
+        cloud rather than ending the exploration of every other object."""
+        try:
+            msg = self.node.wait_for_objects([target], self.seen_after.get(target),
+                                             self.s.observe_timeout_s)[target]
+        except StackError as exc:
+            if int(target) not in self.last_cloud:
+                raise
+            self.node.get_logger().warning(f"{exc}; keeping object {target}'s last cloud")
+            return self.last_cloud[int(target)]
         arr = cloud_to_arrays(msg.cloud, require_normals=True)
-        return ObservedCloud(arr.points, arr.normals, msg.cloud, int(target))
+        cloud = ObservedCloud(arr.points, arr.normals, msg.cloud, int(target))
+        self.last_cloud[int(target)] = cloud
+        return cloud
 
     def execute(self, target: int, action: Action) -> TrialResult:
         outcome = self.node.execute(action_to_interaction(action, object_id=int(target)))
