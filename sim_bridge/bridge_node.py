@@ -26,10 +26,8 @@ import zlib
 from dataclasses import dataclass
 
 import numpy as np
-import rclpy
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 from sensor_msgs.msg import JointState, PointCloud2
 from w2e_msgs.action import FollowWaypoints
@@ -45,6 +43,7 @@ from w2e_ros.ros.conversions import from_pose, to_pose, to_vector3
 from w2e_ros.ros.params import declare_typed_parameters, describe, param
 from w2e_ros.ros.pointcloud import arrays_to_cloud
 from w2e_ros.ros.qos import RELIABLE_QOS, SENSOR_QOS
+from w2e_ros.ros.spin import run_node
 from w2e_ros.ros.waypoints import action_from_waypoints
 
 TABLE_ID = 0  # object_id of table points in the camera cloud
@@ -356,21 +355,7 @@ class SimBridgeNode(Node):
 
 def main(args: list[str] | None = None) -> None:
     """Run the bridge (multi-threaded: the camera keeps publishing during a trial)."""
-    rclpy.init(args=args)
-    node = executor = None
-    try:
-        node = SimBridgeNode()
-        executor = MultiThreadedExecutor(num_threads=2)
-        executor.add_node(node)
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if executor is not None:
-            executor.shutdown(timeout_sec=1.0)  # finish callbacks before the node goes
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    run_node(SimBridgeNode, args, threads=2)
 
 
 if __name__ == "__main__":

@@ -19,10 +19,8 @@ import threading
 from dataclasses import dataclass
 
 import numpy as np
-import rclpy
 from rclpy.action import ActionClient, ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 from w2e_msgs.action import ExecuteInteraction, FollowWaypoints
 from w2e_msgs.msg import InteractionOutcome
@@ -34,6 +32,7 @@ from w2e_ros.ros.conversions import (
     trial_result_to_outcome,
 )
 from w2e_ros.ros.params import declare_typed_parameters, describe, param
+from w2e_ros.ros.spin import run_node
 from w2e_ros.ros.waypoints import outcome_from_measurement, plan_waypoints
 
 
@@ -147,21 +146,7 @@ class GripperExecutorNode(Node):
 
 def main(args: list[str] | None = None) -> None:
     """Run the executor; multi-threaded so a goal can wait on the robot's action."""
-    rclpy.init(args=args)
-    node = executor = None
-    try:
-        node = GripperExecutorNode()
-        executor = MultiThreadedExecutor(num_threads=3)
-        executor.add_node(node)
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if executor is not None:
-            executor.shutdown(timeout_sec=1.0)  # finish callbacks before the node goes
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    run_node(GripperExecutorNode, args, threads=3)
 
 
 if __name__ == "__main__":

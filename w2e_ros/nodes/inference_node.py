@@ -26,9 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import rclpy
 import torch
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
@@ -55,6 +53,7 @@ from w2e_ros.ros.pointcloud import (
     heatmap_rgb,
 )
 from w2e_ros.ros.qos import LATCHED_QOS
+from w2e_ros.ros.spin import run_node
 
 
 @dataclass
@@ -399,17 +398,8 @@ class InferenceNode(Node):
 
 
 def main(args: list[str] | None = None) -> None:
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = InferenceNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    """Run the inference node."""
+    run_node(InferenceNode, args, threads=1)
 
 
 if __name__ == "__main__":

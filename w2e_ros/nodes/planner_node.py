@@ -21,10 +21,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-import rclpy
 from rclpy.action import ActionClient
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.task import Future
 from rclpy.time import Time
@@ -53,6 +51,7 @@ from w2e_ros.ros.conversions import (
 from w2e_ros.ros.params import declare_typed_parameters, describe, param
 from w2e_ros.ros.pointcloud import cloud_to_arrays
 from w2e_ros.ros.qos import LATCHED_QOS, RELIABLE_QOS
+from w2e_ros.ros.spin import run_node
 
 
 @dataclass
@@ -525,19 +524,8 @@ class PlannerNode(Node):
 
 
 def main(args: list[str] | None = None) -> None:
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = PlannerNode()
-        executor = MultiThreadedExecutor(num_threads=4)
-        executor.add_node(node)
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    """Run the planner; multi-threaded so explore/manipulate can wait on the other nodes."""
+    run_node(PlannerNode, args, threads=4)
 
 
 if __name__ == "__main__":

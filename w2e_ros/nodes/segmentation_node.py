@@ -12,8 +12,6 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 from w2e_msgs.msg import SegmentedObject, SegmentedObjects
@@ -23,6 +21,7 @@ from w2e_ros.ros.params import declare_typed_parameters, describe, param
 from w2e_ros.ros.pointcloud import CloudFormatError, arrays_to_cloud, cloud_to_arrays
 from w2e_ros.ros.qos import LATCHED_QOS, SENSOR_QOS
 from w2e_ros.ros.segmentation import Segmenter, SegmenterConfig
+from w2e_ros.ros.spin import run_node
 
 LABEL_FIELD = "object_id"
 
@@ -102,17 +101,7 @@ class SegmentationNode(Node):
 
 def main(args: list[str] | None = None) -> None:
     """Run the segmentation node."""
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = SegmentationNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    run_node(SegmentationNode, args, threads=1)
 
 
 if __name__ == "__main__":
