@@ -134,8 +134,9 @@ def test_none_strategy_spends_nothing_and_snapshots_the_initial_model(novel, rep
                            res.snapshots[0]["aff_head.out.bias"]) for b in (1, 2, 5))
 
 
-def test_fine_tuning_fits_the_explored_interactions(novel, replay):
-    exp = _explorer(replay, finetune_steps=30)
+def test_fine_tuning_fits_the_explored_interactions(novel):
+    # no replay: the explored interaction alone must be learned (replay only anchors)
+    exp = _explorer(None, finetune_steps=30, finetune_lr=1e-3)
     cloud = Cloud(novel.points[0], novel.normals[0], novel.movable[0])
     cands = sample_candidates(cloud, 16, 2, np.random.default_rng(1), mask=cloud.movable)
     i = int(np.argmin(cands.up[:, 2]))  # straight into the handle: a success
@@ -167,3 +168,16 @@ def test_loop_explores_simulated_objects_and_learns_from_the_outcomes():
                          dirs_per_point=2)
     r = probe.run(exp.model_at(res.snapshots[2]))
     assert set(r) == {"kettle", "all", "mean"} and 0.0 <= r["all"] <= 1.0
+
+
+def test_explored_batch_weighs_successes_and_failures_equally(novel):
+    exp = _explorer(None, finetune_steps=0)
+    cloud = Cloud(novel.points[0], novel.normals[0], novel.movable[0])
+    cands = sample_candidates(cloud, 8, 1, np.random.default_rng(2))
+    outcomes = [True, False, False, False]
+    exp.update([Executed(cloud, cands, k, TrialResult(True, ok, np.array([0.0]), 0, "door"))
+                for k, ok in enumerate(outcomes)])
+    batch = exp._explored_batch(np.arange(4))
+    w, y = batch.weight.numpy(), batch.success.numpy()
+    assert w[y == 1].sum() == pytest.approx(w[y == 0].sum())
+    assert w.mean() == pytest.approx(1.0)

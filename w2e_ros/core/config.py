@@ -89,10 +89,10 @@ class ExploreConfig:
     dirs_per_point: int = 8  # candidate (direction, orientation) per point
     finetune_steps: int = 8  # gradient steps after each round of interactions
     finetune_clouds: int = 12  # explored clouds per fine-tune step (newest round always in)
-    finetune_lr: float = 1e-3
+    finetune_lr: float = 1e-4  # 1e-3 wrecked the trained model within 5 rounds (README)
     replay_fraction: float = 0.01  # share of the training interactions replayed
-    replay_clouds: int = 2  # replay observations per fine-tune step
-    replay_per_cloud: int = 8
+    replay_clouds: int = 4  # replay observations per fine-tune step
+    replay_per_cloud: int = 16
     snapshot_budgets: tuple[int, ...] = field(default=(1, 2, 5))
     movable_only: bool = False  # candidates only on movable points (needs ground truth)
     seed: int = 0

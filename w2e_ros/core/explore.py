@@ -276,12 +276,21 @@ class W2EExplorer:
         t = lambda a, dt=torch.float32: torch.as_tensor(np.asarray(a), dtype=dt,  # noqa: E731
                                                        device=self.device)
         off = 0 if self.replay is None else self.replay.num_interactions
+        # class-balanced, as the training batches were: explored interactions are mostly
+        # failures, and unweighted they teach the model that nothing on a novel category moves
+        success = np.array([e.success for e in chosen])
+        n_pos = int(success.sum())
+        weight = np.ones(n, np.float32)
+        if 0 < n_pos < n:
+            weight[success] = n / (2.0 * n_pos)
+            weight[~success] = n / (2.0 * (n - n_pos))
         return Batch(clouds=t(clouds), cloud_of=t(np.arange(n), torch.long),
                      point_index=t([e.point_index for e in chosen], torch.long),
                      actions=t(np.stack([e.action for e in chosen])),
                      success=t([float(e.success) for e in chosen]),
                      interaction=off + np.asarray(rows),
                      aff_mask=t([e.update_affordance for e in chosen], torch.bool),
+                     weight=t(weight),
                      sim_mask=t(np.full(n, self.train_similarity), torch.bool))
 
     def update(self, executed: Sequence[Executed]) -> dict[str, float]:

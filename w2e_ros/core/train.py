@@ -68,10 +68,15 @@ class Batch:
     interaction: np.ndarray  # (K,) int, key of the running-accuracy counters (-1: none)
     aff_mask: torch.Tensor  # (K,) bool, trains the affordance head
     sim_mask: torch.Tensor  # (K,) bool, trains the similarity head
+    weight: torch.Tensor | None = None  # (K,) weight of each affordance term (None: 1)
 
     @staticmethod
     def cat(parts: list[Batch]) -> Batch:
         offsets = np.cumsum([0] + [len(p.clouds) for p in parts[:-1]])
+        weight = None
+        if any(p.weight is not None for p in parts):
+            weight = torch.cat([p.weight if p.weight is not None
+                                else torch.ones_like(p.success) for p in parts])
         return Batch(
             clouds=torch.cat([p.clouds for p in parts]),
             cloud_of=torch.cat([p.cloud_of + int(o) for p, o in zip(parts, offsets,
@@ -82,6 +87,7 @@ class Batch:
             interaction=np.concatenate([p.interaction for p in parts]),
             aff_mask=torch.cat([p.aff_mask for p in parts]),
             sim_mask=torch.cat([p.sim_mask for p in parts]),
+            weight=weight,
         )
 
 
@@ -151,7 +157,8 @@ def training_losses(model: W2EModel, batch: Batch, acc: RunningAccuracy,
     stats: dict[str, float] = {}
     if bool(am.any()):
         logits = model.aff_head(f[am], batch.actions[am])
-        loss_aff = F.binary_cross_entropy_with_logits(logits, batch.success[am])
+        w = batch.weight[am] if batch.weight is not None else None
+        loss_aff = F.binary_cross_entropy_with_logits(logits, batch.success[am], weight=w)
         stats["aff_acc"] = float(((logits > 0).float() == batch.success[am]).float().mean())
     else:
         loss_aff = zero

@@ -77,7 +77,7 @@ class InferenceSettings:
     num_best: int = param(8, "best / least familiar actions returned per object", min=1,
                           max=1000)
     finetune_steps: int = param(8, "gradient steps per update_model call", min=1, max=1000)
-    finetune_lr: float = param(1e-3, "Adam learning rate of the fine-tuning", min=0.0)
+    finetune_lr: float = param(1e-4, "Adam learning rate of the fine-tuning", min=0.0)
     replay_fraction: float = param(0.01, "share of the training interactions replayed",
                                    min=0.0, max=1.0)
     threads: int = param(2, "torch CPU threads", min=1, max=256)
