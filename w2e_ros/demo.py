@@ -39,7 +39,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="unseen TEST-split instances manipulated before and after")
     p.add_argument("--checkpoint", default=None,
                    help="model of the primitive (default: shipped checkpoints/w2e_cfw_*.pt)")
-    p.add_argument("--out", default="demo_out", help="directory for the PNGs and summary")
+    p.add_argument("--out", default="results/demo", help="directory for the PNGs and summary")
     p.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID of the stack")
     p.add_argument("--quiet-nodes", action="store_true", help="hide the nodes' output")
 
