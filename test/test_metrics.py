@@ -80,3 +80,20 @@ def test_predictions_match_the_model_on_each_interaction():
     r2 = probe.run(model)  # cached outcomes: nothing executed twice
     assert r1 == r2 and len(world.executed) == 3
     assert 0.0 <= r1["all"] <= 1.0
+
+
+def test_validation_instances_are_neither_explored_nor_test():
+    from w2e_ros.core.categories import load_categories
+    from w2e_ros.core.evaluate import evaluation_instances, evaluation_targets
+
+    cats = load_categories()
+    test = set(cats.instances("kettle", "test"))
+    explored = set(cats.instances("kettle", "explore")[:5])
+    held_out = evaluation_instances("kettle", validate=True, explored=5)
+    assert held_out and not (set(held_out) & (test | explored))
+    assert set(evaluation_instances("kettle")) == test
+    assert {t.instance for t in evaluation_targets(["kettle"], 3, validate=True, explored=5)} \
+        <= set(held_out)
+    with pytest.raises(ValueError, match="explore fewer"):
+        evaluation_instances("kettle", validate=True, explored=len(cats.instances("kettle",
+                                                                               "explore")))

@@ -129,7 +129,9 @@ def _add_fewshot(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--objects", type=int, default=10, help="explore instances per category")
     p.add_argument("--points", type=int, default=256, help="candidate points per object")
     p.add_argument("--dirs", type=int, default=8, help="candidate actions per point")
-    p.add_argument("--finetune-steps", type=int, default=8)
+    p.add_argument("--finetune-steps", type=int, default=8,
+                   help="gradient steps after each round of interactions")
+    p.add_argument("--finetune-lr", type=float, default=1e-4, help="fine-tuning learning rate")
     p.add_argument("--bar", type=float, default=0.9, help="mean similarity to stop at")
     p.add_argument("--out", required=True, help="directory for adapted models and records")
     p.add_argument("--seed", type=int, default=0)
@@ -163,7 +165,8 @@ def _run_fewshot(a: argparse.Namespace) -> int:
             primitive=primitive, categories=train_cats or None,
             instances=load_categories().instances(cats[0], "train"))
     cfg = ExploreConfig(budget=a.budget, sim_bar=a.bar, points_per_object=a.points,
-                        dirs_per_point=a.dirs, finetune_steps=a.finetune_steps, seed=a.seed,
+                        dirs_per_point=a.dirs, finetune_steps=a.finetune_steps,
+                        finetune_lr=a.finetune_lr, seed=a.seed,
                         snapshot_budgets=tuple(b for b in (1, 2, 5) if b <= a.budget)
                         or (a.budget,))
     runs = fewshot(model, meta, SimWorld(model.cfg.num_points), cats, get_strategy(a.strategy),
@@ -263,9 +266,14 @@ def _add_benchmark(sub: argparse._SubParsersAction) -> None:
                    help="per novel category, for sample success (0: skip)")
     p.add_argument("--points", type=int, default=256, help="candidate points per object")
     p.add_argument("--dirs", type=int, default=8, help="candidate actions per point")
-    p.add_argument("--finetune-steps", type=int, default=8)
+    p.add_argument("--finetune-steps", type=int, default=8,
+                   help="gradient steps after each round of interactions")
+    p.add_argument("--finetune-lr", type=float, default=1e-4, help="fine-tuning learning rate")
     p.add_argument("--bar", type=float, default=0.9,
                    help="similarity bar that ends exploration early (>1: never)")
+    p.add_argument("--validate", action="store_true",
+                   help="judge on held-out explore instances (with --test-data from `w2e collect "
+                        "--split explore`), never on the test split: for choosing settings")
     p.add_argument("--no-heatmaps", action="store_true")
     p.add_argument("--threads", type=int, default=2)
     p.set_defaults(func=_run_benchmark)
@@ -285,10 +293,11 @@ def _run_benchmark(a: argparse.Namespace) -> int:
         combos=tuple(a.combos), seeds=tuple(a.seeds), primitives=tuple(a.primitives),
         methods=tuple(a.methods), budgets=tuple(a.budgets), mode=a.mode,
         categories=tuple(a.categories) if a.categories else None,
-        explore_objects=a.explore_objects, test_objects=a.test_objects,
+        explore_objects=a.explore_objects, test_objects=a.test_objects, validate=a.validate,
         eval_points=a.points, eval_dirs=a.dirs, heatmaps=not a.no_heatmaps,
         explore=ExploreConfig(points_per_object=a.points, dirs_per_point=a.dirs,
-                              finetune_steps=a.finetune_steps, sim_bar=a.bar))
+                              finetune_steps=a.finetune_steps, finetune_lr=a.finetune_lr,
+                              sim_bar=a.bar))
     run_benchmark(cfg)
     print((Path(a.out) / "tables.md").read_text())
     return 0

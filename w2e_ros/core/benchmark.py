@@ -27,7 +27,12 @@ import torch
 from w2e_ros.core.categories import load_categories
 from w2e_ros.core.config import ExploreConfig
 from w2e_ros.core.data import InteractionData
-from w2e_ros.core.evaluate import SuccessProbe, evaluation_targets, predict_interactions
+from w2e_ros.core.evaluate import (
+    SuccessProbe,
+    evaluation_instances,
+    evaluation_targets,
+    predict_interactions,
+)
 from w2e_ros.core.explore import fewshot
 from w2e_ros.core.metrics import fscore, mean_std
 from w2e_ros.core.model import W2EModel, load_model
@@ -60,6 +65,7 @@ class BenchmarkConfig:
     categories: tuple[str, ...] | None = None  # restrict the novel categories (reduced runs)
     explore_objects: int = 10  # explore instances per category
     test_objects: int = 10  # test objects per category for sample success (0: skip)
+    validate: bool = False  # judge on held-out EXPLORE instances instead of the test split
     eval_points: int = 256
     eval_dirs: int = 8
     heatmaps: bool = True
@@ -88,8 +94,9 @@ class _Evaluator:
         self.test = {c: test.select(categories=[c]) for c in cats} if test is not None else {}
         self.probes = {}
         if cfg.test_objects > 0:
-            self.probes = {c: SuccessProbe(world, evaluation_targets([c], cfg.test_objects),
-                                           primitive, cfg.eval_points, cfg.eval_dirs)
+            self.probes = {c: SuccessProbe(world, evaluation_targets(
+                [c], cfg.test_objects, validate=cfg.validate, explored=cfg.explore_objects),
+                primitive, cfg.eval_points, cfg.eval_dirs)
                            for c in cats}
 
     def category(self, model: W2EModel, c: str) -> dict[str, Any]:
@@ -141,8 +148,10 @@ def run_benchmark(cfg: BenchmarkConfig, world: Any | None = None) -> dict:
                 novel = [c for c in novel if c in cfg.categories]
             test = None
             if test_all is not None:
-                test = test_all.select(primitive=prim, categories=novel,
-                                       instances=cats_cfg.instances(novel[0], "test"))
+                test = InteractionData.concat([test_all.select(
+                    primitive=prim, categories=[c],
+                    instances=evaluation_instances(c, cfg.validate, cfg.explore_objects))
+                    for c in novel])
             ev = _Evaluator(cfg, world, novel, prim, test)
             for seed in cfg.seeds:
                 for method in cfg.methods:
@@ -200,7 +209,7 @@ def run_benchmark(cfg: BenchmarkConfig, world: Any | None = None) -> dict:
                         (out / f"explored_{prim}_{combo}_{method}_s{seed}.json").write_text(
                             json.dumps(explored, indent=1))
                     if cfg.heatmaps and method == "similarity" and prim not in heat_done:
-                        _heatmaps(out, prim, combo, world, novel, models)
+                        _heatmaps(out, prim, combo, world, novel, models, cfg)
                         heat_done.add(prim)
     rows_f.close()
     summary = summarize(rows, cfg)
@@ -209,11 +218,12 @@ def run_benchmark(cfg: BenchmarkConfig, world: Any | None = None) -> dict:
 
 
 def _heatmaps(out: Path, prim: str, combo: str, world: Any, cats: list[str],
-              models: dict[str, dict[int, W2EModel]]) -> None:
+              models: dict[str, dict[int, W2EModel]], cfg: BenchmarkConfig) -> None:
     from w2e_ros.core.viz import heatmap_figure, normal_maps
 
     for c in cats[:3]:
-        target = evaluation_targets([c], 1)[0]
+        target = evaluation_targets([c], 1, validate=cfg.validate,
+                                    explored=cfg.explore_objects)[0]
         cloud = world.observe(target)
         before, after = models[c][0], models[c][max(models[c])]
         a0, s0 = normal_maps(before, cloud.points, cloud.normals)
@@ -242,7 +252,9 @@ def summarize(rows: list[dict], cfg: BenchmarkConfig) -> dict:
              f"Mean +- std over combinations {', '.join(cfg.combos)} x seeds "
              f"{', '.join(map(str, cfg.seeds))}; budgets {' / '.join(map(str, cfg.budgets))}; "
              f"mode {cfg.mode}; {cfg.explore_objects} explore and {cfg.test_objects} test "
-             "objects per category. Values in %.", ""]
+             "objects per category. Values in %."
+             + (" VALIDATION: judged on held-out explore instances, not the test split."
+                if cfg.validate else ""), ""]
     cols = [(m, p) for m in ("fscore", "success") for p in cfg.primitives]
     names = {"fscore": "F-score", "success": "sample success"}
     lines.append("| method | " + " | ".join(f"{names[m]} {p}" for m, p in cols) + " |")

@@ -111,15 +111,31 @@ class SuccessProbe:
         return out
 
 
-def evaluation_targets(categories: Sequence[str], per_category: int, state_seeds: int = 1
-                 ) -> list[Any]:
-    """The first ``per_category`` TEST instances of each category (x start states)."""
+def evaluation_instances(category: str, validate: bool = False, explored: int = 10
+                         ) -> list[int]:
+    """Instances a few-shot model is judged on: the TEST split, or with ``validate`` the
+    explore-split instances after the first ``explored`` (never explored, never test), so
+    that settings can be chosen without looking at the test instances."""
     from w2e_ros.core.categories import load_categories
-    from w2e_ros.core.sim_world import Target
 
     cats = load_categories()
+    if not validate:
+        return cats.instances(category, "test")
+    held_out = cats.instances(category, "explore")[explored:]
+    if not held_out:
+        raise ValueError(f"validation needs explore instances of {category} beyond the "
+                         f"{explored} explored ones; explore fewer objects")
+    return held_out
+
+
+def evaluation_targets(categories: Sequence[str], per_category: int, state_seeds: int = 1,
+                       validate: bool = False, explored: int = 10) -> list[Any]:
+    """The first ``per_category`` evaluation instances of each category (x start states)."""
+    from w2e_ros.core.sim_world import Target
+
     return [Target(c, i, s) for c in categories
-            for i in cats.instances(c, "test")[:per_category] for s in range(state_seeds)]
+            for i in evaluation_instances(c, validate, explored)[:per_category]
+            for s in range(state_seeds)]
 
 
 def evaluate(model: W2EModel, test_data: InteractionData | None,
