@@ -211,7 +211,12 @@ def _run_evaluate(a: argparse.Namespace) -> int:
 
     from w2e_ros.core.categories import load_categories
     from w2e_ros.core.data import InteractionData
-    from w2e_ros.core.evaluate import SuccessProbe, evaluate, evaluation_targets
+    from w2e_ros.core.evaluate import (
+        SuccessProbe,
+        evaluate,
+        evaluation_instances,
+        evaluation_targets,
+    )
     from w2e_ros.core.model import load_model
     from w2e_ros.core.sim_world import SimWorld
 
@@ -221,9 +226,10 @@ def _run_evaluate(a: argparse.Namespace) -> int:
     cats = a.categories or load_categories().novel(meta.get("combo"))
     test = None
     if a.test_data:
-        test = InteractionData.load(a.test_data).select(
-            primitive=primitive, categories=cats,
-            instances=load_categories().instances(cats[0], "test"))
+        data = InteractionData.load(a.test_data)
+        test = InteractionData.concat([data.select(primitive=primitive, categories=[c],
+                                                   instances=evaluation_instances(c))
+                                       for c in cats])
     probe = None
     if a.objects > 0:
         probe = SuccessProbe(SimWorld(model.cfg.num_points), evaluation_targets(cats, a.objects),
