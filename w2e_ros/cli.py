@@ -132,6 +132,9 @@ def _add_fewshot(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--finetune-steps", type=int, default=8,
                    help="gradient steps after each round of interactions")
     p.add_argument("--finetune-lr", type=float, default=1e-4, help="fine-tuning learning rate")
+    p.add_argument("--movable-only", action="store_true",
+                   help="exploration candidates only on ground-truth movable points "
+                        "(simulation only; the reference implementation explores this way)")
     p.add_argument("--bar", type=float, default=0.9, help="mean similarity to stop at")
     p.add_argument("--out", required=True, help="directory for adapted models and records")
     p.add_argument("--seed", type=int, default=0)
@@ -166,7 +169,7 @@ def _run_fewshot(a: argparse.Namespace) -> int:
             instances=load_categories().instances(cats[0], "train"))
     cfg = ExploreConfig(budget=a.budget, sim_bar=a.bar, points_per_object=a.points,
                         dirs_per_point=a.dirs, finetune_steps=a.finetune_steps,
-                        finetune_lr=a.finetune_lr, seed=a.seed,
+                        finetune_lr=a.finetune_lr, movable_only=a.movable_only, seed=a.seed,
                         snapshot_budgets=tuple(b for b in (1, 2, 5) if b <= a.budget)
                         or (a.budget,))
     runs = fewshot(model, meta, SimWorld(model.cfg.num_points), cats, get_strategy(a.strategy),
@@ -275,6 +278,9 @@ def _add_benchmark(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--finetune-steps", type=int, default=8,
                    help="gradient steps after each round of interactions")
     p.add_argument("--finetune-lr", type=float, default=1e-4, help="fine-tuning learning rate")
+    p.add_argument("--movable-only", action="store_true",
+                   help="exploration candidates only on ground-truth movable points "
+                        "(simulation only; the reference implementation explores this way)")
     p.add_argument("--bar", type=float, default=0.9,
                    help="similarity bar that ends exploration early (>1: never)")
     p.add_argument("--validate", action="store_true",
@@ -303,7 +309,7 @@ def _run_benchmark(a: argparse.Namespace) -> int:
         eval_points=a.points, eval_dirs=a.dirs, heatmaps=not a.no_heatmaps,
         explore=ExploreConfig(points_per_object=a.points, dirs_per_point=a.dirs,
                               finetune_steps=a.finetune_steps, finetune_lr=a.finetune_lr,
-                              sim_bar=a.bar))
+                              movable_only=a.movable_only, sim_bar=a.bar))
     run_benchmark(cfg)
     print((Path(a.out) / "tables.md").read_text())
     return 0
