@@ -12,6 +12,10 @@ import logging
 import os
 import sys
 from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from w2e_ros.core.config import ExploreConfig
 
 Handler = Callable[[argparse.Namespace], int | None]
 
@@ -111,6 +115,28 @@ def _run_train(a: argparse.Namespace) -> int:
     return 0
 
 
+def _add_explore_args(p: argparse.ArgumentParser) -> None:
+    """The few-shot loop's settings, shared by ``fewshot`` and ``benchmark``."""
+    p.add_argument("--points", type=int, default=256, help="candidate points per object")
+    p.add_argument("--dirs", type=int, default=8, help="candidate actions per point")
+    p.add_argument("--finetune-steps", type=int, default=8,
+                   help="gradient steps after each round of interactions")
+    p.add_argument("--finetune-lr", type=float, default=1e-4, help="fine-tuning learning rate")
+    p.add_argument("--movable-only", action="store_true",
+                   help="exploration candidates only on ground-truth movable points "
+                        "(simulation only; the reference implementation explores this way)")
+    p.add_argument("--bar", type=float, default=0.9,
+                   help="mean similarity that ends exploration early (>1: never)")
+
+
+def _explore_config(a: argparse.Namespace, **kw: object) -> ExploreConfig:
+    from w2e_ros.core.config import ExploreConfig
+
+    return ExploreConfig(points_per_object=a.points, dirs_per_point=a.dirs,
+                         finetune_steps=a.finetune_steps, finetune_lr=a.finetune_lr,
+                         movable_only=a.movable_only, sim_bar=a.bar, **kw)
+
+
 def _add_fewshot(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "fewshot", help="few-shot exploration of the novel categories in the simulator",
@@ -127,15 +153,7 @@ def _add_fewshot(sub: argparse._SubParsersAction) -> None:
                    help="novel categories to explore (default: the 11 not in the combination)")
     p.add_argument("--budget", type=int, default=5, help="interactions per run")
     p.add_argument("--objects", type=int, default=10, help="explore instances per category")
-    p.add_argument("--points", type=int, default=256, help="candidate points per object")
-    p.add_argument("--dirs", type=int, default=8, help="candidate actions per point")
-    p.add_argument("--finetune-steps", type=int, default=8,
-                   help="gradient steps after each round of interactions")
-    p.add_argument("--finetune-lr", type=float, default=1e-4, help="fine-tuning learning rate")
-    p.add_argument("--movable-only", action="store_true",
-                   help="exploration candidates only on ground-truth movable points "
-                        "(simulation only; the reference implementation explores this way)")
-    p.add_argument("--bar", type=float, default=0.9, help="mean similarity to stop at")
+    _add_explore_args(p)
     p.add_argument("--out", required=True, help="directory for adapted models and records")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=2)
@@ -149,7 +167,6 @@ def _run_fewshot(a: argparse.Namespace) -> int:
     import torch
 
     from w2e_ros.core.categories import load_categories
-    from w2e_ros.core.config import ExploreConfig
     from w2e_ros.core.data import InteractionData
     from w2e_ros.core.explore import fewshot
     from w2e_ros.core.model import load_model, save_model
@@ -167,11 +184,9 @@ def _run_fewshot(a: argparse.Namespace) -> int:
         replay = InteractionData.load(a.replay_data).select(
             primitive=primitive, categories=train_cats or None,
             instances=load_categories().instances(cats[0], "train"))
-    cfg = ExploreConfig(budget=a.budget, sim_bar=a.bar, points_per_object=a.points,
-                        dirs_per_point=a.dirs, finetune_steps=a.finetune_steps,
-                        finetune_lr=a.finetune_lr, movable_only=a.movable_only, seed=a.seed,
-                        snapshot_budgets=tuple(b for b in (1, 2, 5) if b <= a.budget)
-                        or (a.budget,))
+    cfg = _explore_config(a, budget=a.budget, seed=a.seed,
+                          snapshot_budgets=tuple(b for b in (1, 2, 5) if b <= a.budget)
+                          or (a.budget,))
     runs = fewshot(model, meta, SimWorld(model.cfg.num_points), cats, get_strategy(a.strategy),
                    cfg, primitive, replay, a.mode, a.objects)
     out = Path(a.out)
@@ -273,16 +288,7 @@ def _add_benchmark(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--explore-objects", type=int, default=10, help="per novel category")
     p.add_argument("--test-objects", type=int, default=10,
                    help="per novel category, for sample success (0: skip)")
-    p.add_argument("--points", type=int, default=256, help="candidate points per object")
-    p.add_argument("--dirs", type=int, default=8, help="candidate actions per point")
-    p.add_argument("--finetune-steps", type=int, default=8,
-                   help="gradient steps after each round of interactions")
-    p.add_argument("--finetune-lr", type=float, default=1e-4, help="fine-tuning learning rate")
-    p.add_argument("--movable-only", action="store_true",
-                   help="exploration candidates only on ground-truth movable points "
-                        "(simulation only; the reference implementation explores this way)")
-    p.add_argument("--bar", type=float, default=0.9,
-                   help="similarity bar that ends exploration early (>1: never)")
+    _add_explore_args(p)
     p.add_argument("--validate", action="store_true",
                    help="judge on held-out explore instances (with --test-data from `w2e collect "
                         "--split explore`), never on the test split: for choosing settings")
@@ -297,7 +303,6 @@ def _run_benchmark(a: argparse.Namespace) -> int:
     import torch
 
     from w2e_ros.core.benchmark import BenchmarkConfig, run_benchmark
-    from w2e_ros.core.config import ExploreConfig
 
     torch.set_num_threads(a.threads)
     cfg = BenchmarkConfig(
@@ -307,9 +312,7 @@ def _run_benchmark(a: argparse.Namespace) -> int:
         categories=tuple(a.categories) if a.categories else None,
         explore_objects=a.explore_objects, test_objects=a.test_objects, validate=a.validate,
         eval_points=a.points, eval_dirs=a.dirs, heatmaps=not a.no_heatmaps,
-        explore=ExploreConfig(points_per_object=a.points, dirs_per_point=a.dirs,
-                              finetune_steps=a.finetune_steps, finetune_lr=a.finetune_lr,
-                              movable_only=a.movable_only, sim_bar=a.bar))
+        explore=_explore_config(a))
     run_benchmark(cfg)
     print((Path(a.out) / "tables.md").read_text())
     return 0

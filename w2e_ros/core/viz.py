@@ -91,7 +91,9 @@ def metric_curves(summary: dict, methods: Sequence[str], budgets: Sequence[int],
             ax.set_xlabel("interaction budget")
             ax.set_xticks(list(budgets))
             ax.grid(alpha=0.3)
-    axes[0, 0].legend(fontsize=8)
+    labelled = [ax for ax in axes.flat if ax.get_legend_handles_labels()[0]]
+    if labelled:  # e.g. a run without test interactions has no F-score panel content
+        labelled[0].legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
