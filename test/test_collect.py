@@ -68,3 +68,63 @@ def test_changed_settings_refuse_to_mix_into_an_existing_collection(tmp_path) ->
 def test_unknown_category_is_a_clear_error(tmp_path) -> None:
     with pytest.raises(ValueError, match="unknown category 'spaceship'"):
         collect(_cfg(tmp_path / "d", categories=["spaceship"]))
+
+
+def _children(pid: int) -> set[int]:
+    """Live child processes of ``pid`` (from /proc: no psutil needed)."""
+    from pathlib import Path
+
+    kids = set()
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid and fields[0] != "Z":
+            kids.add(int(stat.parent.name))
+    return kids
+
+
+def _alive(pid: int) -> bool:
+    from pathlib import Path
+
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+@pytest.mark.slow
+def test_sigterm_stops_the_workers_too(tmp_path) -> None:
+    import contextlib
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "w2e_ros.cli", "collect", "--out", str(tmp_path / "c"),
+         "--categories", "cabinet", "door", "--observations", "40", "--workers", "2",
+         "--obs-per-shard", "2", "--num-points", "512"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 60
+        while len(_children(proc.pid)) < 2 and time.monotonic() < deadline:
+            time.sleep(0.2)
+        workers = _children(proc.pid)
+        assert len(workers) >= 2, "the collector never started its workers"
+        while not list((tmp_path / "c").glob("shard-*.npz")) and time.monotonic() < deadline:
+            time.sleep(0.2)  # let the workers get into their trials
+        os.kill(proc.pid, signal.SIGTERM)
+        proc.wait(timeout=30)
+        time.sleep(0.5)
+        alive = [w for w in workers if _alive(w)]
+        assert not alive, f"workers outlived the collector: {alive}"
+        assert proc.returncode != 0  # it reports the interruption
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        for w in _children(proc.pid) | locals().get("workers", set()):
+            with contextlib.suppress(OSError):
+                os.kill(w, signal.SIGKILL)  # no orphans even when the test fails

@@ -15,12 +15,16 @@ fractions are flags of ``w2e collect`` and are stored with every shard.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import multiprocessing as mp
 import os
+import signal
+import threading
 import time
 from collections import defaultdict
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -219,7 +223,7 @@ def collect(cfg: CollectConfig) -> CollectSummary:
                 bar.update(n)
         elif todo:
             ctx = mp.get_context("spawn")
-            with ctx.Pool(cfg.workers, initializer=_worker_init) as pool:
+            with _term_as_interrupt(), ctx.Pool(cfg.workers, initializer=_worker_init) as pool:
                 for n, _ in pool.imap_unordered(_run_chunk, todo):
                     bar.update(n)
                     summary.new_trials += n
@@ -230,6 +234,25 @@ def collect(cfg: CollectConfig) -> CollectSummary:
         if not shard.name.endswith(".tmp.npz"):
             summary.add(InteractionData.load_shard(shard))
     return summary
+
+
+@contextlib.contextmanager
+def _term_as_interrupt() -> Iterator[None]:
+    """SIGTERM (``kill``, a supervisor stopping the job) unwinds like Ctrl-C, so the pool's
+    ``with`` block terminates the workers instead of leaving them orphaned; finished shards
+    stay on disk and a re-run resumes from them."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def _raise(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    previous = signal.signal(signal.SIGTERM, _raise)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def _worker_init() -> None:
