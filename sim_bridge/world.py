@@ -27,6 +27,25 @@ RANGE_FRACTION = 0.5  # ... or |motion| / range > 0.5
 PULL_COSINE = 0.5  # pull: contact point must move along -up
 
 
+def judge_motion(motion: np.ndarray, target_joint: int, joint_range: float, pulling: bool,
+                 displacement: np.ndarray, pull_direction: np.ndarray) -> tuple[bool, str]:
+    """DESIGN §3's success rule for a valid trial, shared by the simulator and the executor
+    (which judges from robot-side measurements): the touched part is movable and moved
+    > 0.01 (m or rad) or more than half its range, and a pull moved the contact point along
+    the hand's pulling direction. Returns (success, reason when not)."""
+    if not 0 <= target_joint < len(motion):
+        return False, "contact point is on a fixed part"
+    mv = abs(float(motion[target_joint]))
+    if not (mv > MOTION_THRESHOLD or mv / max(float(joint_range), 1e-9) > RANGE_FRACTION):
+        return False, "part did not move enough"
+    if pulling:
+        d = np.asarray(displacement, float)
+        cos = float(d @ pull_direction) / max(float(np.linalg.norm(d)), 1e-12)
+        if cos <= PULL_COSINE:
+            return False, "pull moved the part the wrong way"
+    return True, ""
+
+
 @dataclass
 class SimSettings:
     """Step schedule of a trial (240 Hz; ~0.1 m/s hand speed) and the camera."""
@@ -296,22 +315,11 @@ class ObjectWorld:
         valid = reason == ""
         success = False
         if valid:
-            if target_joint < 0:
-                reason = "contact point is on a fixed part"
-            else:
-                lim = self.joint_limits[target_joint]
-                mv = abs(motion[target_joint])
-                rng_ = max(lim[1] - lim[0], 1e-9)
-                success = mv > MOTION_THRESHOLD or mv / rng_ > RANGE_FRACTION
-                if not success:
-                    reason = "part did not move enough"
-                elif not pushing:
-                    hand_move = R @ (waypoints[-1][0] - waypoints[0][0])
-                    pull_dir = normalize(hand_move) if np.linalg.norm(hand_move) > 0 else -up
-                    cos = disp @ pull_dir / max(np.linalg.norm(disp), 1e-12)
-                    if cos <= PULL_COSINE:
-                        success = False
-                        reason = "pull moved the part the wrong way"
+            lim = self.joint_limits[target_joint] if target_joint >= 0 else (0.0, 0.0)
+            hand_move = R @ (waypoints[-1][0] - waypoints[0][0])
+            pull_dir = normalize(hand_move) if np.linalg.norm(hand_move) > 0 else -up
+            success, reason = judge_motion(motion, target_joint, lim[1] - lim[0], not pushing,
+                                           disp, pull_dir)
         return TrialResult(
             valid=valid,
             success=bool(success),

@@ -14,14 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sim_bridge.types import PRIMITIVES, Action, TrialResult
-from sim_bridge.world import (
-    MOTION_THRESHOLD,
-    PULL_COSINE,
-    PUSH_START,
-    RANGE_FRACTION,
-    gripper_frame,
-    schedule,
-)
+from sim_bridge.world import PUSH_START, gripper_frame, judge_motion, schedule
 
 GRIPPER_KEEP, GRIPPER_OPEN, GRIPPER_CLOSE = 0, 1, 2  # = FollowWaypoints.Goal constants
 POSITION_TOLERANCE = 0.005  # m: a trajectory within this of a primitive's is that primitive
@@ -144,22 +137,17 @@ def outcome_from_measurement(
     disp = np.asarray(contact_displacement, float).reshape(3)
     success = False
     if valid:
-        if not 0 <= contact_joint < len(motion):
-            reason = reason or "contact point is on a fixed part"
-        else:
-            mv = abs(motion[contact_joint])
-            rng = max(float(joint_ranges[contact_joint]), 1e-9)
-            success = mv > MOTION_THRESHOLD or mv / rng > RANGE_FRACTION
-            if not success:
-                reason = reason or "part did not move enough"
-            elif action.primitive.startswith("pull"):
-                plan = plan_waypoints(action)
-                pull = plan.positions[-1] - plan.positions[1]  # from the grasp to the end
-                pull = pull / max(np.linalg.norm(pull), 1e-12)
-                cos = float(disp @ pull / max(np.linalg.norm(disp), 1e-12))
-                if cos <= PULL_COSINE:
-                    success = False
-                    reason = "pull moved the part the wrong way"
+        pulling = action.primitive.startswith("pull")
+        pull = np.zeros(3)
+        if pulling:
+            plan = plan_waypoints(action)
+            pull = plan.positions[-1] - plan.positions[1]  # from the grasp to the end
+            pull = pull / max(np.linalg.norm(pull), 1e-12)
+        in_range = 0 <= contact_joint < len(motion)
+        success, why = judge_motion(motion, contact_joint,
+                                    float(joint_ranges[contact_joint]) if in_range else 0.0,
+                                    pulling, disp, pull)
+        reason = reason or why
     if success:
         reason = ""
     return TrialResult(valid=bool(valid), success=bool(success), motion=motion,
