@@ -181,3 +181,31 @@ def test_explored_batch_weighs_successes_and_failures_equally(novel):
     w, y = batch.weight.numpy(), batch.success.numpy()
     assert w[y == 1].sum() == pytest.approx(w[y == 0].sum())
     assert w.mean() == pytest.approx(1.0)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("budget_per, per_round", [("category", 2), ("object", 4)])
+def test_budget_per_object_gives_every_explore_instance_its_own_interactions(budget_per,
+                                                                             per_round):
+    from w2e_ros.core.explore import fewshot
+    from w2e_ros.core.sim_world import SimWorld
+
+    torch.manual_seed(0)
+    model = W2EModel(SMALL)
+    cfg = ExploreConfig(budget=2, points_per_object=8, dirs_per_point=2, finetune_steps=2,
+                        finetune_clouds=3, snapshot_budgets=(1, 2), sim_bar=1.01,
+                        budget_per=budget_per)
+    meta = {"aff_categories": ["cabinet"], "sim_categories": ["cabinet", "faucet", "window"]}
+    runs = fewshot(model, meta, SimWorld(SMALL.num_points), ["kettle", "door"],
+                   get_strategy("random"), cfg, "push", per_category=2)
+    res, explorer = runs["all"]
+    assert len(res.steps) == 2 * per_round and len(explorer.explored) == 2 * per_round
+    for rnd in (1, 2):
+        targets = [s.target for s in res.steps if s.round == rnd]
+        assert len(targets) == per_round
+        if budget_per == "object":  # each of the 4 instances once per round
+            assert sorted(t.rsplit("/", 1)[0] for t in targets) == [
+                "door/30", "door/31", "kettle/30", "kettle/31"]
+    with pytest.raises(ValueError, match="budget_per"):
+        fewshot(model, meta, SimWorld(SMALL.num_points), ["kettle"], get_strategy("random"),
+                ExploreConfig(budget_per="instance"), "push", per_category=1)

@@ -127,6 +127,9 @@ def _add_explore_args(p: argparse.ArgumentParser) -> None:
                         "(simulation only; the reference implementation explores this way)")
     p.add_argument("--bar", type=float, default=0.9,
                    help="mean similarity that ends exploration early (>1: never)")
+    p.add_argument("--budget-per", default="category", choices=["category", "object"],
+                   help="the budget counts interactions per novel category, or per explore "
+                        "instance as in the paper (10 instances x 5 = 50 per category)")
 
 
 def _explore_config(a: argparse.Namespace, **kw: object) -> ExploreConfig:
@@ -134,7 +137,8 @@ def _explore_config(a: argparse.Namespace, **kw: object) -> ExploreConfig:
 
     return ExploreConfig(points_per_object=a.points, dirs_per_point=a.dirs,
                          finetune_steps=a.finetune_steps, finetune_lr=a.finetune_lr,
-                         movable_only=a.movable_only, sim_bar=a.bar, **kw)
+                         movable_only=a.movable_only, sim_bar=a.bar,
+                         budget_per=a.budget_per, **kw)
 
 
 def _add_fewshot(sub: argparse._SubParsersAction) -> None:

@@ -83,7 +83,11 @@ class TrainConfig:
 class ExploreConfig:
     """Few-shot exploration (paper §3.3 and supplementary)."""
 
-    budget: int = 5  # interactions per category (rounds)
+    budget: int = 5  # rounds: interactions per category, or per object (budget_per)
+    # "category": one interaction per novel category and round (a budget of 5 = 5 per
+    # category); "object": one per explore instance and round, each instance stopping at the
+    # bar on its own, the paper's reading (10 instances x 5 = 50 per category)
+    budget_per: str = "category"
     sim_bar: float = 0.9  # stop when the mean similarity exceeds it
     points_per_object: int = 256  # candidate contact points per object and step
     dirs_per_point: int = 8  # candidate (direction, orientation) per point

@@ -295,8 +295,8 @@ class W2EExplorer:
 
     def update(self, executed: Sequence[Executed]) -> dict[str, float]:
         """Remember the executed interactions, then fine-tune both heads on the explored ones
-        (the newest always, older ones sampled up to ``cfg.finetune_clouds`` clouds) plus a
-        replay batch of the training data."""
+        (the newest round always, older ones sampled up to ``cfg.finetune_clouds`` clouds; a
+        round bigger than that is sampled itself) plus a replay batch of the training data."""
         for e in executed:
             self.explored.append(Explored(
                 np.asarray(e.cloud.points, dtype=np.float32),
@@ -309,10 +309,12 @@ class W2EExplorer:
             return stats
         self.model.train()
         n, newest = len(self.explored), len(executed)
-        cap = max(self.cfg.finetune_clouds, newest)
+        cap = self.cfg.finetune_clouds
         for _ in range(self.cfg.finetune_steps):
             rows = np.arange(n - newest, n)
-            if n > newest and cap > newest:
+            if newest > cap:  # a big round (one interaction per object): sample it
+                rows = np.sort(self.rng.choice(rows, size=cap, replace=False))
+            elif n > newest and cap > newest:
                 older = self.rng.choice(n - newest, size=min(n - newest, cap - newest),
                                         replace=False)
                 rows = np.concatenate([np.sort(older), rows])
@@ -361,6 +363,8 @@ def fewshot(model: W2EModel, meta: dict, world: ExplorationWorld, categories: Se
     """
     if mode not in ("all", "per-category"):
         raise ValueError(f"unknown mode {mode!r} (all | per-category)")
+    if cfg.budget_per not in ("category", "object"):
+        raise ValueError(f"unknown budget_per {cfg.budget_per!r} (category | object)")
     groups = {"all": list(categories)} if mode == "all" else {c: [c] for c in categories}
     aff, sim = tuple(meta.get("aff_categories", ())), tuple(meta.get("sim_categories", ()))
     initial = {k: v.detach().clone() for k, v in model.state_dict().items()}
@@ -371,9 +375,10 @@ def fewshot(model: W2EModel, meta: dict, world: ExplorationWorld, categories: Se
         explorer = W2EExplorer(m, cfg, replay, aff, sim, train_similarity=bool(sim),
                                seed=cfg.seed)
         targets = explore_targets(cats, per_category)
-        log.info("few-shot %s on %s (%d objects), %s, budget %d", strategy.name, name,
-                 len(targets), primitive, cfg.budget)
+        log.info("few-shot %s on %s (%d objects), %s, budget %d per %s", strategy.name, name,
+                 len(targets), primitive, cfg.budget, cfg.budget_per)
         res = explore(explorer, world, targets, strategy, cfg, primitive,
-                      rng=np.random.default_rng(cfg.seed))
+                      rng=np.random.default_rng(cfg.seed),
+                      group_of=_name if cfg.budget_per == "object" else None)
         out[name] = (res, explorer)
     return out
