@@ -260,9 +260,11 @@ class Stack:
                 self.output.flush()
 
 
-def main(argv: list[str] | None = None) -> int:
-    """``w2e bringup``: start the stack, keep it up until Ctrl-C or SIGTERM, stop it cleanly."""
-    p = argparse.ArgumentParser(prog="w2e bringup", description=__doc__.split("\n\n")[0])
+DESCRIPTION = __doc__.split("\n\n")[0]
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The bringup flags, defined once for ``w2e bringup`` and ``python -m w2e_ros.bringup``."""
     p.add_argument("--nodes", nargs="+", default=None, choices=list(NODES),
                    help="nodes to start (default: all)")
     p.add_argument("--params", default=None, help="parameter file (default config/w2e_stack.yaml)")
@@ -270,8 +272,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID for the nodes")
     p.add_argument("--log-dir", default=None, help="ROS_LOG_DIR for the nodes")
     p.add_argument("--timeout", type=float, default=120.0, help="seconds to wait for start-up")
-    a = p.parse_args(argv)
 
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m w2e_ros.bringup``: the same flags and behaviour as ``w2e bringup``."""
+    p = argparse.ArgumentParser(prog="python -m w2e_ros.bringup", description=DESCRIPTION)
+    add_arguments(p)
+    return run(p.parse_args(argv))
+
+
+def run(a: argparse.Namespace) -> int:
+    """Start the stack, keep it up until Ctrl-C or SIGTERM, stop it cleanly."""
     env = ros_env(domain_id=a.domain_id, log_dir=a.log_dir, localhost_only=False)
     stopping = threading.Event()
 

@@ -334,10 +334,12 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_bringup(sub: argparse._SubParsersAction) -> None:
+    from w2e_ros.bringup import DESCRIPTION, add_arguments
+
     p = sub.add_parser("bringup", help="start the ROS node stack (python -m w2e_ros.bringup)",
-                       add_help=False)
-    p.add_argument("args", nargs=argparse.REMAINDER, help="see w2e bringup --help")
-    p.set_defaults(func=lambda a: __import__("w2e_ros.bringup", fromlist=["main"]).main(a.args))
+                       description=DESCRIPTION)
+    add_arguments(p)  # the module's own flags: one definition for both command lines
+    p.set_defaults(func=lambda a: __import__("w2e_ros.bringup", fromlist=["run"]).run(a))
 
 
 def _add_record(sub: argparse._SubParsersAction) -> None:
