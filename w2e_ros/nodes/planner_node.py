@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 from rclpy.action import ActionClient
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
 from rclpy.task import Future
 from rclpy.time import Time
@@ -231,9 +231,11 @@ class PlannerNode(Node):
         self.busy = threading.Lock()
         self.objects_cv = threading.Condition()
         self.latest_objects: SegmentedObjects | None = None
-        # user requests in one group; every reply they wait for in another, so the
-        # executor's other threads deliver the replies while a request handler blocks
-        self.user_group = MutuallyExclusiveCallbackGroup()
+        # user requests in a reentrant group, so a second request is handled while one runs
+        # and answers "busy" at once (self.busy lets one explore/manipulate run at a time);
+        # every reply a handler waits for in another group, so the executor's other threads
+        # deliver the replies while a request handler blocks
+        self.user_group = ReentrantCallbackGroup()
         self.io_group = ReentrantCallbackGroup()
         g = self.io_group
         self.predict_cli = self.create_client(PredictMaps, "predict_maps", callback_group=g)

@@ -1,0 +1,115 @@
+"""The planner node as a user's own code meets it: plain rclpy clients in separate processes.
+
+A second explore or manipulate sent while an explore runs must answer "busy" at once, as the
+README says, not wait silently until the first one ends (the services once shared a mutually
+exclusive callback group: measured, no answer within 30 s while a budget-3 explore ran).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import subprocess
+import sys
+import time
+
+import pytest
+
+pytest.importorskip("rclpy")
+pytest.importorskip("w2e_msgs.msg", reason="w2e_msgs not built: make interfaces")
+
+from w2e_ros.bringup import Stack  # noqa: E402
+from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, ros_env  # noqa: E402
+
+pytestmark = pytest.mark.slow
+clean_shm_at_exit()
+
+OBSERVE_TIMEOUT_S = 6.0  # how long the first explore runs: it waits for objects that never come
+
+# A user's client: waits for the service, says "ready", sends one request when told "go" on
+# stdin, says "sent", then prints the answer and how long it took as one JSON line.
+CLIENT = """
+import json, os, sys, time
+import rclpy
+from w2e_msgs.srv import Explore, Manipulate
+
+verb = sys.argv[1]
+srv = {"explore": Explore, "manipulate": Manipulate}[verb]
+rclpy.init()
+node = rclpy.create_node(f"user_{verb}_{os.getpid()}")
+cli = node.create_client(srv, verb)
+assert cli.wait_for_service(timeout_sec=60.0), "no service"
+req = srv.Request(primitive="push")
+if verb == "explore":
+    req.budget = 1
+print("ready", flush=True)
+sys.stdin.readline()
+t0 = time.monotonic()
+future = cli.call_async(req)
+print("sent", flush=True)
+rclpy.spin_until_future_complete(node, future, timeout_sec=float(sys.argv[2]))
+res = future.result()
+print(json.dumps({"answered": res is not None, "seconds": time.monotonic() - t0,
+                  "success": bool(res.success) if res else None,
+                  "message": res.message if res else ""}), flush=True)
+node.destroy_node()
+rclpy.try_shutdown()
+"""
+
+
+def _client(verb: str, env: dict[str, str], wait_s: float) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-c", CLIENT, verb, str(wait_s)], env=env,
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, bufsize=1)
+
+
+def _expect(proc: subprocess.Popen, word: str) -> None:
+    assert proc.stdout is not None
+    line = proc.stdout.readline().strip()
+    assert line == word, f"client said {line!r}, expected {word!r}"
+
+
+def _go(proc: subprocess.Popen) -> None:
+    assert proc.stdin is not None
+    proc.stdin.write("go\n")
+    proc.stdin.flush()
+
+
+def _answer(proc: subprocess.Popen, timeout: float) -> dict:
+    out, _ = proc.communicate(timeout=timeout)
+    assert proc.returncode == 0, out
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def test_a_second_request_while_explore_runs_answers_busy_at_once(tmp_path):
+    env = ros_env(domain_id=pick_domain_id(31), log_dir=tmp_path / "ros_log")
+    extra = {"planner": ["-p", f"observe_timeout_s:={OBSERVE_TIMEOUT_S}"]}
+    with Stack(nodes=["planner"], env=env, output=io.StringIO(), extra_args=extra):
+        # the scene is empty (no segmentation node): the first explore waits for objects
+        first = _client("explore", env, 60.0)
+        # each later client gives up after the first one's whole run: a waiting service
+        # shows as a slow or a missing answer
+        others = [_client("explore", env, OBSERVE_TIMEOUT_S + 4), _client(
+            "manipulate", env, OBSERVE_TIMEOUT_S + 4)]
+        try:
+            for proc in (first, *others):
+                _expect(proc, "ready")
+            _go(first)
+            _expect(first, "sent")
+            time.sleep(1.0)  # the first request is in its handler
+            for proc in others:
+                _go(proc)
+            for verb, proc in zip(("explore", "manipulate"), others, strict=True):
+                got = _answer(proc, 60)
+                assert got["answered"], f"second {verb}: no answer while explore ran"
+                assert got["success"] is False and "busy" in got["message"], got
+                assert got["seconds"] < 3.0, f"second {verb}: 'busy' only after the wait: {got}"
+            done = _answer(first, 60)
+            # the first one ran to its end: no objects seen, a real answer, not "busy"
+            assert done["answered"] and done["success"] is False, done
+            assert "busy" not in done["message"] and "not seen" in done["message"], done
+            assert done["seconds"] >= OBSERVE_TIMEOUT_S - 0.5, done
+        finally:
+            for proc in (first, *others):
+                if proc.poll() is None:
+                    proc.kill()
+                    proc.wait()
