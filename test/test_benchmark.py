@@ -1,11 +1,15 @@
-"""`w2e benchmark` end to end on the shipped checkpoint: real sim trials, tiny sizes."""
+"""`w2e benchmark` end to end on the shipped checkpoint: real sim trials, tiny sizes, and the
+paired statistics recomputed from the predictions it saved."""
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
 
+import numpy as np
+
 from w2e_ros import cli
+from w2e_ros.core.benchmark import BenchmarkConfig, summarize
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -16,17 +20,61 @@ def test_benchmark_cli_explores_evaluates_and_writes_tables(tmp_path):
     (runs / "model.pt").symlink_to(ROOT / "checkpoints" / "w2e_cfw_push.pt")
     out = tmp_path / "out"
     rc = cli.main(["benchmark", "--runs", str(tmp_path / "runs"), "--combos", "cfw",
-                   "--primitives", "push", "--methods", "none", "similarity", "fulldata",
-                   "--categories", "door", "--budgets", "1", "--explore-objects", "1",
-                   "--test-objects", "1", "--points", "16", "--dirs", "2",
-                   "--finetune-steps", "1", "--bar", "1.01", "--movable-only", "--validate",
-                   "--no-heatmaps", "--threads", "1", "--out", str(out)])
+                   "--primitives", "push", "--methods", "none", "random", "similarity",
+                   "fulldata", "--seeds", "0", "1",
+                   "--categories", "door", "--budgets", "1", "--explore-objects", "2",
+                   "--test-objects", "2", "--points", "16", "--dirs", "2",
+                   "--finetune-steps", "20", "--bar", "1.01", "--validate",
+                   "--bootstrap", "50", "--no-heatmaps", "--threads", "1", "--out", str(out)])
     assert rc == 0
-    rows = [json.loads(line) for line in (out / "rows.jsonl").read_text().splitlines()]
+    doc = json.loads((out / "benchmark.json").read_text())
+    rows = doc["rows"]
     # fulldata has no checkpoint here: skipped with a warning, not a crash
-    assert {r["method"] for r in rows} == {"none", "similarity"}
-    assert all(r["metric"] == "success" and 0.0 <= r["value"] <= 1.0 for r in rows)
-    steps = json.loads((out / "explored_push_cfw_similarity_s0.json").read_text())["door"]
-    assert len(steps) == 1 and steps[0]["target"].startswith("door/30")  # the one explored
+    assert {r["method"] for r in rows} == {"none", "random", "similarity"}
+    means = [r for r in rows if "vs" not in r]
+    assert {r["metric"] for r in means} == {"success"}  # no test interactions given
+    for r in means:
+        assert r["ci_low"] <= r["mean"] + 1e-9 and r["mean"] <= r["ci_high"] + 1e-9
+        assert r["n_seeds"] == 2 and r["combination"] == "cfw" and r["budget"] in (0, 1)
+    # paired differences: a method against itself is never listed, none vs random is
+    diffs = [r for r in rows if r.get("vs") == "random"]
+    assert {r["method"] for r in diffs} == {"none", "similarity"}
+    base0 = [r for r in diffs if r["budget"] == 0]  # before exploring every method is `none`
+    assert all(r["mean"] == 0.0 and r["ci_low"] == 0.0 == r["ci_high"] for r in base0)
+    explored = json.loads((out / "explored_cfw_push.json").read_text())
+    steps = explored["similarity_s0_all"]["steps"]
+    assert len(steps) == 2 and {s["target"].split("/")[1] for s in steps} <= {"30", "31"}
     tables = (out / "tables.md").read_text()
-    assert "VALIDATION" in tables and "| similarity |" in tables
+    assert "VALIDATION" in tables and "| similarity - random |" in tables
+
+
+def test_paired_interval_sees_a_real_difference_and_none_in_noise(tmp_path):
+    """Two methods that differ only by noise get an interval around 0; a method that is
+    right more often gets a positive paired difference whose interval excludes 0."""
+    rng = np.random.default_rng(0)
+    n_obs, per = 60, 10
+    y = rng.random(n_obs * per) < 0.3
+    obs = np.repeat(np.arange(n_obs), per)
+    arrays = {"test:success": y, "test:valid": np.ones_like(y), "test:obs": obs,
+              "test:category": np.full(len(y), "door")}
+    for seed in range(3):
+        noise = lambda: rng.normal(0, 0.3, len(y))  # noqa: E731
+        for b in (0, 1):
+            arrays[f"pred:none|{seed}|{b}|aff"] = 1 / (1 + np.exp(-noise()))
+            arrays[f"pred:none|{seed}|{b}|sim"] = np.full(len(y), 0.5)
+            arrays[f"pred:random|{seed}|{b}|aff"] = 1 / (1 + np.exp(-noise()))
+            arrays[f"pred:random|{seed}|{b}|sim"] = np.full(len(y), 0.5)
+            good = 1 / (1 + np.exp(-(noise() + (2.0 * y - 1.0) * (1.5 if b else 0.0))))
+            arrays[f"pred:similarity|{seed}|{b}|aff"] = good
+            arrays[f"pred:similarity|{seed}|{b}|sim"] = np.full(len(y), 0.5)
+    np.savez(tmp_path / "predictions_cfw_push.npz", **arrays)
+    cfg = BenchmarkConfig(out=str(tmp_path), combos=("cfw",), seeds=(0, 1, 2),
+                          methods=("none", "random", "similarity"), budgets=(1,),
+                          bootstrap=200)
+    doc = summarize(tmp_path, cfg)
+    get = {(r["method"], r["budget"], r["metric"], r.get("vs")): r for r in doc["rows"]}
+    d = get[("similarity", 1, "auroc", "random")]
+    assert d["ci_low"] > 0.1  # a real gain: the whole interval above zero
+    n = get[("none", 1, "auroc", "random")]
+    assert n["ci_low"] < 0 < n["ci_high"]  # noise: the interval straddles zero
+    assert (tmp_path / "tables.md").exists() and (tmp_path / "metrics_vs_budget.png").exists()

@@ -9,9 +9,11 @@ from synthetic import Cloud, RuleWorld, synthetic_data
 
 from sim_bridge.types import TrialResult
 from w2e_ros.core.config import ExploreConfig, ModelConfig
-from w2e_ros.core.explore import Executed, W2EExplorer, explore, sample_candidates
+from w2e_ros.core.explore import Executed, explore, sample_candidates
+from w2e_ros.core.finetune import W2EExplorer
 from w2e_ros.core.model import W2EModel
-from w2e_ros.core.strategies import get_strategy
+from w2e_ros.core.proposals import ProposalConfig
+from w2e_ros.core.strategies import Scored, get_strategy
 
 torch.set_num_threads(2)
 SMALL = ModelConfig(num_points=256, sa_npoint=(64, 16, 8, 4))
@@ -35,18 +37,26 @@ def _explorer(replay, sim_bias: float | None = None, seed: int = 0, **kw) -> W2E
         with torch.no_grad():
             model.sim_head.out.weight.zero_()
             model.sim_head.out.bias.fill_(sim_bias)
-    kw = {"points_per_object": 32, "dirs_per_point": 4, "finetune_steps": 2, **kw}
+    kw = {"points_per_object": 32, "dirs_per_point": 4, "finetune_steps": 2,
+          "finetune_min_steps": 2, **kw}
     cfg = ExploreConfig(**kw)
     return W2EExplorer(model, cfg, replay, ("cabinet",), ("cabinet", "faucet", "window"),
                        seed=seed)
 
 
-def test_candidates_face_the_surface_and_stay_on_the_mask(novel):
+def test_candidates_face_the_surface_and_favour_the_mask(novel):
     cloud = Cloud(novel.points[0], novel.normals[0], novel.movable[0])
-    c = sample_candidates(cloud, 20, 3, np.random.default_rng(0), mask=cloud.movable)
-    assert len(c) == 60 and cloud.movable[c.point_index].all()
-    assert (np.sum(c.up * cloud.normals[c.point_index], axis=1) < 0).all()
-    np.testing.assert_allclose(np.sum(c.up * c.forward, axis=1), 0, atol=1e-5)
+    rng = np.random.default_rng(0)
+    only = sample_candidates(cloud, 20, 3, rng, mask=cloud.movable,
+                             proposal=ProposalConfig(movable_fraction=1.0))
+    assert len(only) == 60 and cloud.movable[only.point_index].all()
+    c = sample_candidates(cloud, 400, 1, rng, mask=cloud.movable)  # default: 80 % on it
+    assert cloud.movable[c.point_index].mean() > 0.8
+    free = sample_candidates(cloud, 400, 1, rng)  # no mask (a real robot): the whole cloud
+    assert cloud.movable[free.point_index].mean() < 0.6
+    for cand in (only, c, free):
+        assert (np.sum(cand.up * cloud.normals[cand.point_index], axis=1) < 0).all()
+        np.testing.assert_allclose(np.sum(cand.up * cand.forward, axis=1), 0, atol=1e-5)
 
 
 def test_loop_stops_at_the_bar_before_spending_anything(novel, replay):
@@ -59,16 +69,21 @@ def test_loop_stops_at_the_bar_before_spending_anything(novel, replay):
 
 
 def test_loop_spends_the_budget_when_similarity_stays_low(novel, replay):
-    exp = _explorer(replay, sim_bias=-8.0, budget=3, snapshot_budgets=(1, 2, 5))
+    # budget 2 per object x 3 objects = 6 interactions, 2 a round: snapshots after the
+    # rounds where 3 (b=1) and 6 (b=2) interactions were reached; b=5 is the final model
+    exp = _explorer(replay, sim_bias=-8.0, budget=2, round_size=2,
+                    snapshot_budgets=(1, 2, 5))
     world = RuleWorld(novel)
-    res = explore(exp, world, list(range(6)), get_strategy("similarity"), exp.cfg, "push")
-    assert res.stopped == "budget" and len(res.steps) == 3 == len(world.executed)
-    assert [s.step for s in res.steps] == [1, 2, 3]
-    assert len(res.mean_similarity) == 4
+    res = explore(exp, world, [0, 1, 2], get_strategy("similarity"), exp.cfg, "push")
+    assert res.stopped == "budget" and len(res.steps) == 6 == len(world.executed)
+    assert [s.step for s in res.steps] == [1, 2, 3, 4, 5, 6]
+    assert [s.round for s in res.steps] == [1, 1, 2, 2, 3, 3]
+    assert len(res.mean_similarity) == 4 and exp.num_explored == 6
     # snapshots differ across budgets (the model was fine-tuned in between); 5 = final
     w = "aff_head.out.bias"
     assert not torch.equal(res.snapshots[0][w], res.snapshots[1][w])
     assert not torch.equal(res.snapshots[1][w], res.snapshots[2][w])
+    assert torch.equal(res.snapshots[2][w], exp.snapshot()[w])
     assert torch.equal(res.snapshots[5][w], exp.snapshot()[w])
 
 
@@ -99,30 +114,124 @@ def test_similarity_strategy_executes_the_lowest_similarity_action(novel, replay
     np.testing.assert_allclose(action.up, seen["cands"][obj].up[i], atol=1e-6)
 
 
-def test_budget_counts_interactions_per_category_one_update_per_round(novel, replay):
-    exp = _explorer(replay, sim_bias=-8.0, budget=2, snapshot_budgets=(1, 2))
-    world = RuleWorld(novel)
-    updates = []
+class TaggedWorld(RuleWorld):
+    """The rule world whose clouds know their target (for the fake model below)."""
 
-    class Counting:
-        def score(self, clouds, cands):
-            return exp.score(clouds, cands)
+    def observe(self, target):
+        cloud = super().observe(target)
+        cloud.target = target
+        return cloud
 
-        def update(self, executed):
-            updates.append(len(executed))
-            return exp.update(executed)
 
-        def snapshot(self):
-            return exp.snapshot()
+class FakeModel:
+    """An ExplorationModel without learning: each object's similarity is a number that
+    rises by ``gain[object]`` per interaction on it; snapshots count the updates so far."""
 
-    group = {i: str(novel.category[i]) for i in range(6)}
-    res = explore(Counting(), world, list(range(6)), get_strategy("similarity"), exp.cfg,
-                  "push", group_of=group.__getitem__)
-    assert updates == [2, 2]  # two categories: one interaction each, one update per round
-    assert [(s.round, s.group) for s in res.steps] == [
-        (1, "kettle"), (1, "bucket"), (2, "kettle"), (2, "bucket")]
-    assert all(str(novel.category[t]) == s.group
-               for (t, _), s in zip(world.executed, res.steps, strict=True))
+    def __init__(self, sim, gain, seed: int = 0):
+        self.sim, self.gain = list(sim), list(gain)
+        self.rounds: list[list[int]] = []
+        self.seen: list[tuple[list, list]] = []
+        self.rng = np.random.default_rng(seed)
+
+    def score(self, clouds, cands):
+        out = []
+        for cl, c in zip(clouds, cands, strict=True):
+            aff = 0.5 + 0.45 * np.sin(1000.0 * c.up[:, 0] + 7.0 * c.point_index)
+            # tiny per-candidate spread, so candidates of one object are ranked
+            sim = self.sim[cl.target] + 1e-4 * np.arange(len(c)) / max(len(c), 1)
+            out.append(Scored(aff.astype(np.float32), sim.astype(np.float32)))
+        self.seen.append((list(cands), out))
+        return out
+
+    def update(self, executed):
+        self.rounds.append([e.cloud.target for e in executed])
+        for e in executed:
+            self.sim[e.cloud.target] += self.gain[e.cloud.target]
+        return {"loss": 0.0}
+
+    def snapshot(self):
+        return len(self.rounds)
+
+
+def _fake_cfg(**kw) -> ExploreConfig:
+    return ExploreConfig(**{"points_per_object": 8, "dirs_per_point": 2, **kw})
+
+
+def test_budget_is_b_interactions_per_object_in_rounds_capped_per_object(novel):
+    model, world = FakeModel([0.0] * 3, [0.0] * 3), TaggedWorld(novel)
+    cfg = _fake_cfg(budget=2, round_size=4, per_object_per_round=2, snapshot_budgets=(1, 2, 5))
+    res = explore(model, world, [0, 1, 2], get_strategy("random"), cfg, "push",
+                  rng=np.random.default_rng(0))
+    assert res.stopped == "budget" and len(res.steps) == 6 == len(world.executed)
+    assert [len(r) for r in model.rounds] == [4, 2]  # round_size, then what is left
+    assert all(max(np.bincount(r)) <= 2 for r in model.rounds)
+    assert [s.round for s in res.steps] == [1, 1, 1, 1, 2, 2]
+    assert [int(s.target) for s in res.steps] == [t for r in model.rounds for t in r]
+    # snapshots once b x 3 interactions are spent: b=1 after round 1 (4 >= 3), b=2 after
+    # round 2, b=5 (never reached) the final model
+    assert res.snapshots == {0: 0, 1: 1, 2: 2, 5: 2}
+
+
+def test_default_round_is_a_fifth_of_the_objects(novel):
+    model, world = FakeModel([0.0] * 6, [0.0] * 6), TaggedWorld(novel)
+    res = explore(model, world, list(range(6)), get_strategy("random"),
+                  _fake_cfg(budget=1, per_object_per_round=1), "push",
+                  rng=np.random.default_rng(1))
+    assert [len(r) for r in model.rounds] == [2, 2, 2] and len(res.steps) == 6
+
+
+def test_budget_is_chosen_globally_so_an_unfamiliar_object_takes_more(novel):
+    # object 0 stays unfamiliar (similarity 0.1), the others familiar-ish (0.6): the
+    # similarity rule spends most of the budget on object 0, up to 2 per round
+    model, world = FakeModel([0.1, 0.6, 0.6], [0.0] * 3), TaggedWorld(novel)
+    cfg = _fake_cfg(budget=2, round_size=3, per_object_per_round=2)
+    res = explore(model, world, [0, 1, 2], get_strategy("similarity"), cfg, "push")
+    targets = [int(s.target) for s in res.steps]
+    assert len(targets) == 6 and targets.count(0) == 4
+    assert all(r.count(0) == 2 for r in model.rounds)
+
+
+def test_an_object_over_the_bar_is_dropped_while_the_others_continue(novel):
+    # object 0 becomes familiar fast (+0.25 per interaction), the others slowly
+    model, world = FakeModel([0.5] * 3, [0.25, 0.05, 0.05]), TaggedWorld(novel)
+    cfg = _fake_cfg(budget=3, round_size=3, per_object_per_round=1, sim_bar=0.9)
+    res = explore(model, world, [0, 1, 2], get_strategy("similarity"), cfg, "push")
+    assert res.stopped == "budget" and len(res.steps) == 9
+    rounds_of_0 = {s.round for s in res.steps if int(s.target) == 0}
+    assert rounds_of_0 == {1, 2}  # 0.5 -> 0.75 -> 1.0 > 0.9: not explored after round 2
+    assert [sorted(r) for r in model.rounds] == [[0, 1, 2], [0, 1, 2], [1, 2], [1]]
+    # the mean similarity before a round is over all objects, the dropped one included
+    assert res.mean_similarity[2] == pytest.approx(np.mean([1.0, 0.6, 0.6]), abs=1e-3)
+
+
+def test_loop_stops_at_the_bar_once_every_object_passes_it(novel):
+    model, world = FakeModel([0.5] * 3, [0.25] * 3), TaggedWorld(novel)
+    cfg = _fake_cfg(budget=5, round_size=3, per_object_per_round=1, sim_bar=0.9,
+                    snapshot_budgets=(1, 5))
+    res = explore(model, world, [0, 1, 2], get_strategy("similarity"), cfg, "push")
+    assert res.stopped == "bar" and len(res.steps) == 6 and len(model.rounds) == 2
+    assert res.snapshots == {0: 0, 1: 1, 5: 2}  # budget 5 never reached: the final model
+
+
+def test_oracle_executes_the_pool_candidates_the_model_gets_most_wrong(novel):
+    model, world = FakeModel([0.0] * 2, [0.0] * 2), TaggedWorld(novel)
+    cfg = _fake_cfg(budget=2, round_size=2, per_object_per_round=1, oracle_pool=12)
+    res = explore(model, world, [0, 1], get_strategy("oracle"), cfg, "push")
+    # the pools were labelled in hindsight first (2 x 12 trials), then 4 interactions
+    assert len(world.executed) == 24 + 4 and len(res.steps) == 4
+    assert [t for t, _ in world.executed[:24]] == [0] * 12 + [1] * 12
+    picked: dict[int, set] = {0: set(), 1: set()}
+    for rnd, (cands, scored) in enumerate(model.seen[:2]):
+        for obj in (0, 1):
+            c, s = cands[obj], scored[obj]
+            assert len(c) == 12 - rnd  # the pool, without what was executed
+            label = novel.movable[obj][c.point_index] & (c.up[:, 2] < -0.7)
+            i = int(np.argmax(np.abs(s.affordance - label)))
+            step = next(st for st in res.steps if st.round == rnd + 1 and int(st.target) == obj)
+            np.testing.assert_allclose(step.up, c.up[i], atol=1e-6)
+            assert step.success == bool(label[i])
+            picked[obj].add(int(c.source[i]))
+    assert all(len(p) == 2 for p in picked.values())  # never the same candidate twice
 
 
 def test_none_strategy_spends_nothing_and_snapshots_the_initial_model(novel, replay):
@@ -155,57 +264,41 @@ def test_loop_explores_simulated_objects_and_learns_from_the_outcomes():
     world = SimWorld()
     torch.manual_seed(0)
     model = W2EModel()
-    cfg = ExploreConfig(budget=2, points_per_object=16, dirs_per_point=2, finetune_steps=1,
-                        snapshot_budgets=(1, 2))
+    cfg = ExploreConfig(budget=1, points_per_object=16, dirs_per_point=2, finetune_steps=1,
+                        finetune_min_steps=1, snapshot_budgets=(1, 2))
     exp = W2EExplorer(model, cfg, None, ("cabinet",), ("cabinet", "faucet", "window"))
     targets = explore_targets(["kettle"], per_category=2)
     assert [t.instance for t in targets] == [30, 31]
     res = explore(exp, world, targets, get_strategy("similarity"), cfg, "pull")
     assert len(res.steps) == 2 and res.stopped == "budget"
     assert all(s.target.startswith("kettle/") for s in res.steps)
-    assert exp.explored and all(e.cloud.shape == (2048, 3) for e in exp.explored)
+    assert exp.num_explored == 2 and all(c.shape == (2048, 3) for c in exp.clouds)
     probe = SuccessProbe(world, evaluation_targets(["kettle"], 2), "pull", points_per_object=8,
                          dirs_per_point=2)
     r = probe.run(exp.model_at(res.snapshots[2]))
     assert set(r) == {"kettle", "all", "mean"} and 0.0 <= r["all"] <= 1.0
 
 
-def test_explored_batch_weighs_successes_and_failures_equally(novel):
-    exp = _explorer(None, finetune_steps=0)
-    cloud = Cloud(novel.points[0], novel.normals[0], novel.movable[0])
-    cands = sample_candidates(cloud, 8, 1, np.random.default_rng(2))
-    outcomes = [True, False, False, False]
-    exp.update([Executed(cloud, cands, k, TrialResult(True, ok, np.array([0.0]), 0, "door"))
-                for k, ok in enumerate(outcomes)])
-    batch = exp._explored_batch(np.arange(4))
-    w, y = batch.weight.numpy(), batch.success.numpy()
-    assert w[y == 1].sum() == pytest.approx(w[y == 0].sum())
-    assert w.mean() == pytest.approx(1.0)
-
-
 @pytest.mark.slow
-@pytest.mark.parametrize("budget_per, per_round", [("category", 2), ("object", 4)])
-def test_budget_per_object_gives_every_explore_instance_its_own_interactions(budget_per,
-                                                                             per_round):
+def test_fewshot_spends_the_budget_per_object_over_all_novel_categories():
     from w2e_ros.core.explore import fewshot
     from w2e_ros.core.sim_world import SimWorld
 
     torch.manual_seed(0)
     model = W2EModel(SMALL)
-    cfg = ExploreConfig(budget=2, points_per_object=8, dirs_per_point=2, finetune_steps=2,
-                        finetune_clouds=3, snapshot_budgets=(1, 2), sim_bar=1.01,
-                        budget_per=budget_per)
+    cfg = ExploreConfig(budget=1, points_per_object=8, dirs_per_point=2, finetune_steps=2,
+                        finetune_min_steps=2, snapshot_budgets=(1,), sim_bar=1.01,
+                        round_size=2)
     meta = {"aff_categories": ["cabinet"], "sim_categories": ["cabinet", "faucet", "window"]}
-    runs = fewshot(model, meta, SimWorld(SMALL.num_points), ["kettle", "door"],
-                   get_strategy("random"), cfg, "push", per_category=2)
+    world = SimWorld(SMALL.num_points)
+    runs = fewshot(model, meta, world, ["kettle", "door"], get_strategy("random"), cfg, "push",
+                   per_category=2)
     res, explorer = runs["all"]
-    assert len(res.steps) == 2 * per_round and len(explorer.explored) == 2 * per_round
-    for rnd in (1, 2):
-        targets = [s.target for s in res.steps if s.round == rnd]
-        assert len(targets) == per_round
-        if budget_per == "object":  # each of the 4 instances once per round
-            assert sorted(t.rsplit("/", 1)[0] for t in targets) == [
-                "door/30", "door/31", "kettle/30", "kettle/31"]
-    with pytest.raises(ValueError, match="budget_per"):
-        fewshot(model, meta, SimWorld(SMALL.num_points), ["kettle"], get_strategy("random"),
-                ExploreConfig(budget_per="instance"), "push", per_category=1)
+    # budget 1 x 4 explore instances, in rounds of 2
+    assert len(res.steps) == 4 and explorer.num_explored == 4
+    assert [s.round for s in res.steps] == [1, 1, 2, 2]
+    assert {s.target.rsplit("/", 1)[0] for s in res.steps} <= {
+        "door/30", "door/31", "kettle/30", "kettle/31"}
+    with pytest.raises(ValueError, match="mode"):
+        fewshot(model, meta, world, ["kettle"], get_strategy("random"), cfg, "push",
+                mode="per-instance", per_category=1)

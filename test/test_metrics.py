@@ -7,7 +7,16 @@ import math
 import numpy as np
 import pytest
 
-from w2e_ros.core.metrics import affordance_fscore_from_probs, fscore, mean_std, success_rate
+from w2e_ros.core.metrics import (
+    affordance_fscore_from_probs,
+    auroc,
+    average_precision,
+    bootstrap_ci,
+    classification_metrics,
+    fscore,
+    mean_std,
+    success_rate,
+)
 
 
 def test_fscore_hand_computed():
@@ -48,6 +57,105 @@ def test_success_rate_and_mean_std():
     assert m == pytest.approx(0.3) and s == pytest.approx(0.1)
 
 
+def _pairwise_auroc(s: np.ndarray, y: np.ndarray) -> float:
+    """P(score of a positive > score of a negative), ties one half: the definition."""
+    pos, neg = s[y], s[~y]
+    diff = pos[:, None] - neg[None, :]
+    return float(((diff > 0) + 0.5 * (diff == 0)).mean())
+
+
+def test_auroc_hand_computed_with_and_without_ties():
+    # positives 0.9, 0.7, 0.6 vs negatives 0.8, 0.5, 0.4: 3 + 2 + 2 of 9 pairs ranked right
+    s = np.array([0.9, 0.8, 0.7, 0.6, 0.5, 0.4])
+    y = np.array([1, 0, 1, 1, 0, 0], bool)
+    assert auroc(s, y) == pytest.approx(7 / 9)
+    # a tie between a positive and a negative counts one half: (0.5 + 1 + 2) / 4
+    assert auroc(np.array([0.5, 0.5, 0.2, 0.8]), np.array([1, 0, 0, 1], bool)) == \
+        pytest.approx(0.875)
+    # perfect, reversed, all tied
+    assert auroc(np.array([0.1, 0.2, 0.9]), np.array([0, 0, 1], bool)) == 1.0
+    assert auroc(np.array([0.9, 0.2, 0.1]), np.array([0, 0, 1], bool)) == 0.0
+    assert auroc(np.full(6, 0.3), y) == pytest.approx(0.5)
+
+
+def test_auroc_equals_the_pairwise_definition_and_ignores_calibration():
+    rng = np.random.default_rng(0)
+    s = rng.integers(0, 8, size=300) / 8.0  # many ties
+    y = rng.random(300) < 0.3 + 0.4 * s
+    assert auroc(s, y) == pytest.approx(_pairwise_auroc(s, y))
+    # threshold-free: any increasing transform of the scores gives the same value
+    assert auroc(1e-3 * s ** 3 - 5, y) == pytest.approx(auroc(s, y))
+
+
+def test_auroc_and_average_precision_edge_cases():
+    assert math.isnan(auroc(np.array([0.2, 0.8]), np.array([1, 1], bool)))
+    assert math.isnan(auroc(np.array([0.2, 0.8]), np.array([0, 0], bool)))
+    assert math.isnan(auroc(np.array([]), np.array([], bool)))
+    assert math.isnan(average_precision(np.array([0.2, 0.8]), np.array([0, 0], bool)))
+    assert average_precision(np.array([0.2, 0.8]), np.array([1, 1], bool)) == 1.0
+
+
+def test_average_precision_hand_computed():
+    # ranked: + - + + - -  -> precision at each positive 1/1, 2/3, 3/4
+    s = np.array([0.9, 0.8, 0.7, 0.6, 0.5, 0.4])
+    y = np.array([1, 0, 1, 1, 0, 0], bool)
+    assert average_precision(s, y) == pytest.approx((1 + 2 / 3 + 3 / 4) / 3)
+    # the order of the rows does not matter, only the ranking
+    perm = np.random.default_rng(1).permutation(6)
+    assert average_precision(s[perm], y[perm]) == pytest.approx(29 / 36)
+    # all positives ranked first: 1; all last: the mean of k / (n_neg + k)
+    assert average_precision(np.array([0.9, 0.8, 0.1, 0.0]), np.array([1, 1, 0, 0], bool)) == 1.0
+    assert average_precision(np.array([0.9, 0.8, 0.1, 0.0]), np.array([0, 0, 1, 1], bool)) == \
+        pytest.approx((1 / 3 + 2 / 4) / 2)
+
+
+def test_classification_metrics_combines_fscore_auroc_and_ap():
+    s = np.array([0.9, 0.8, 0.7, 0.6, 0.5, 0.4])
+    y = np.array([1, 0, 1, 1, 0, 0], bool)
+    m = classification_metrics(s, y)
+    # at 0.5 (strictly above): predicted 1 = 0.9, 0.8, 0.7, 0.6 -> tp 3, fp 1, fn 0
+    assert (m["tp"], m["fp"], m["fn"]) == (3, 1, 0)
+    assert m["fscore"] == pytest.approx(2 * 0.75 * 1 / 1.75)
+    assert m["auroc"] == pytest.approx(7 / 9) and m["ap"] == pytest.approx(29 / 36)
+    assert m["pos_rate"] == pytest.approx(0.5)
+    assert classification_metrics(s, y, threshold=0.95)["fscore"] == 0.0
+
+
+def test_bootstrap_interval_covers_the_statistic_and_is_reproducible():
+    rng = np.random.default_rng(0)
+    values = rng.normal(1.0, 1.0, size=400)
+    groups = np.arange(400) // 4  # 100 groups of 4 rows
+    mean = lambda idx: float(values[idx].mean())  # noqa: E731
+    point, lo, hi = bootstrap_ci(mean, groups, n_boot=300, seed=3)
+    assert point == pytest.approx(values.mean())
+    assert lo < point < hi and hi - lo < 0.5
+    assert bootstrap_ci(mean, groups, n_boot=300, seed=3) == (point, lo, hi)
+    # a wider level gives a wider interval
+    _, lo99, hi99 = bootstrap_ci(mean, groups, n_boot=300, seed=3, level=0.99)
+    assert lo99 <= lo and hi99 >= hi
+
+
+def test_bootstrap_resamples_whole_groups_not_rows():
+    # two groups of 100 identical rows (0s and 1s): a group resample can only give a mean of
+    # 0, 1/2 or 1 (a row resample would give 0.5 +- 0.07), so the 95 % interval is [0, 1]
+    values = np.repeat([0.0, 1.0], 100)
+    groups = np.repeat(["a", "b"], 100)
+    seen: list[np.ndarray] = []
+
+    def mean(idx: np.ndarray) -> float:
+        seen.append(idx)
+        return float(values[idx].mean())
+
+    point, lo, hi = bootstrap_ci(mean, groups, n_boot=200, seed=0)
+    assert point == 0.5 and (lo, hi) == (0.0, 1.0)
+    assert np.array_equal(seen[0], np.arange(200))  # the point estimate uses every row
+    for idx in seen[1:]:
+        counts = np.bincount(idx, minlength=200)
+        # every row of a group is drawn as often as the group: whole groups only
+        assert len(set(counts[:100])) == 1 and len(set(counts[100:])) == 1
+        assert counts.sum() == 200
+
+
 # --- evaluation of a model (w2e_ros.core.evaluate) ---------------------------------------
 
 def test_predictions_match_the_model_on_each_interaction():
@@ -79,7 +187,14 @@ def test_predictions_match_the_model_on_each_interaction():
     r1 = probe.run(model)
     r2 = probe.run(model)  # cached outcomes: nothing executed twice
     assert r1 == r2 and len(world.executed) == 3
-    assert 0.0 <= r1["all"] <= 1.0
+    outcomes = probe.outcomes(model)  # (success, valid) per target, from the same cache
+    assert len(outcomes) == 3 and all(valid for _, valid in outcomes)
+    assert r1["all"] == pytest.approx(np.mean([ok for ok, _ in outcomes]))
+    assert len(world.executed) == 3
+    # candidates favour the movable parts (the world's ground-truth mask)
+    mask_share = np.mean([data.movable[t][c.point_index].mean()
+                          for t, c in zip([0, 1, 2], probe.candidates, strict=True)])
+    assert mask_share > 0.7
 
 
 def test_validation_instances_are_neither_explored_nor_test():

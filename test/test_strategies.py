@@ -43,3 +43,25 @@ def test_none_does_not_explore_and_only_similarity_stops_at_the_bar():
     assert not get_strategy("where2act").stops_at_bar
     with pytest.raises(ValueError):
         get_strategy("curiosity")
+
+
+def test_select_takes_the_lowest_keys_over_all_objects_capped_per_object():
+    sim = get_strategy("similarity")
+    rng = np.random.default_rng(0)
+    # similarity keys: (1,1)=0.2 (3,0)=0.5 (0,1)=0.6 (1,0)=0.7 (0,0)=0.8 (0,2)=0.9 (3,1)=0.95
+    assert sim.select(_scored(), 3, 2, rng) == [(1, 1), (3, 0), (0, 1)]
+    assert sim.select(_scored(), 4, 1, rng) == [(1, 1), (3, 0), (0, 1)]  # one per object
+    assert sim.select(_scored(), 5, 2, rng) == [(1, 1), (3, 0), (0, 1), (1, 0), (0, 0)]
+    assert len(sim.select(_scored(), 100, 100, rng)) == 7  # every candidate, no more
+
+
+def test_oracle_picks_what_the_model_gets_most_wrong_and_needs_labels():
+    oracle = get_strategy("oracle")
+    assert oracle.needs_labels and not oracle.stops_at_bar
+    labels = [np.array([0, 1, 1]), np.array([1, 0]), np.array([]), np.array([0, 0])]
+    # errors |affordance - label|: obj0 .9 .9 .3, obj1 .55 0, obj3 .52 .99
+    assert oracle.choose(_scored(), np.random.default_rng(0), labels) == (3, 1)
+    assert oracle.select(_scored(), 3, 1, np.random.default_rng(0), labels) == [
+        (3, 1), (0, 0), (1, 0)]
+    with pytest.raises(ValueError, match="labels"):
+        oracle.choose(_scored(), np.random.default_rng(0))

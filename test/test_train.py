@@ -9,11 +9,17 @@ import pytest
 import torch
 from synthetic import synthetic_data
 
+from w2e_ros.core.actions import encode_rotation
 from w2e_ros.core.config import ModelConfig, TrainConfig
+from w2e_ros.core.data import InteractionData
+from w2e_ros.core.metrics import auroc
 from w2e_ros.core.model import load_model
+from w2e_ros.core.predict import predict_interactions
 from w2e_ros.core.train import (
+    BalancedSampler,
     RunningAccuracy,
     Trainer,
+    Validator,
     make_batch,
     method_categories,
     train,
@@ -32,7 +38,8 @@ def data():
 
 def _cfg(**kw) -> TrainConfig:
     base = dict(method="w2e", combo="cfw", primitive="push", steps=4, clouds_per_batch=3,
-                interactions_per_cloud=8, seed=3, log_every=2, ckpt_every=2)
+                interactions_per_cloud=8, seed=3, log_every=2, ckpt_every=2,
+                calibrate_steps=0)
     base.update(kw)
     return TrainConfig(**base)
 
@@ -181,5 +188,175 @@ def test_training_on_simulated_interactions_reduces_the_loss(tmp_path):
     first = trainer.train_step(batch)
     for _ in range(15):
         last = trainer.train_step(batch)
+    # the affordance loss, not the total: the similarity head's soft-target BCE bottoms out
+    # at the entropy of its running-accuracy target, which grows while predictions change
     assert last["loss_aff"] < 0.7 * first["loss_aff"]
-    assert last["loss"] < first["loss"]
+    assert last["aff_acc"] >= first["aff_acc"]
+
+
+# --- flipped negatives, the C_aff share, the similarity loss ------------------------------
+
+def test_flipped_rows_reverse_the_approach_fail_and_share_the_counter(data):
+    rows = np.flatnonzero(data.success)[:6]
+    rows = np.concatenate([rows, rows])  # each positive twice: as stored, then flipped
+    flip = np.repeat([False, True], 6)
+    batch = make_batch(data, rows, ("cabinet",), ("cabinet", "faucet", "window"), CPU,
+                       key_offset=100, flip=flip)
+    np.testing.assert_array_equal(batch.success.numpy(), np.repeat([1.0, 0.0], 6))
+    np.testing.assert_allclose(batch.actions[:6].numpy(),
+                               encode_rotation(data.up[rows[:6]], data.forward[rows[:6]]))
+    np.testing.assert_allclose(batch.actions[6:].numpy(),
+                               encode_rotation(-data.up[rows[:6]], data.forward[rows[:6]]))
+    # a flipped copy is counted on its original's running accuracy
+    np.testing.assert_array_equal(batch.interaction[:6], batch.interaction[6:])
+    np.testing.assert_array_equal(batch.interaction[:6], rows[:6] + 100)
+    # both copies read the same contact feature
+    np.testing.assert_array_equal(batch.point_index[:6], batch.point_index[6:])
+    np.testing.assert_array_equal(batch.cloud_of[:6], batch.cloud_of[6:])
+
+
+def _row_categories(data, rows):
+    return data.category[data.obs_index[rows]]
+
+
+@pytest.mark.parametrize("aff_share", [0.5, 0.8])
+def test_sampler_gives_c_aff_its_share_of_the_clouds_and_flips_a_share(data, aff_share):
+    cats = ("cabinet", "faucet", "window")
+    s = BalancedSampler(data, cats, clouds=4, per_cloud=8, rng=np.random.default_rng(0),
+                        aff_categories=("cabinet",), aff_share=aff_share, flip_share=0.25)
+    rows, flips = zip(*(s.sample() for _ in range(400)), strict=True)
+    # every cloud gives per_cloud rows (stored and flipped), 2 of them flipped
+    assert all(len(r) == 32 and len(f) == 32 and f.sum() == 4 * 2
+               for r, f in zip(rows, flips, strict=True))
+    c = _row_categories(data, np.concatenate(rows))
+    assert (c == "cabinet").mean() == pytest.approx(aff_share, abs=0.04)
+    # the rest is split equally between the other categories
+    assert (c == "faucet").mean() == pytest.approx((1 - aff_share) / 2, abs=0.04)
+    # half of each cloud's rows are positives; flipped copies replace stored negatives
+    r, f = np.concatenate(rows), np.concatenate(flips)
+    assert (data.success[r] & ~f).mean() == pytest.approx(0.5, abs=0.03)
+
+
+def test_sampler_without_affordance_categories_draws_categories_equally(data):
+    s = BalancedSampler(data, ("cabinet", "faucet", "window"), clouds=3, per_cloud=4,
+                        rng=np.random.default_rng(1), aff_share=0.9)
+    rows = np.concatenate([s.sample()[0] for _ in range(400)])
+    c = _row_categories(data, rows)
+    for cat in ("cabinet", "faucet", "window"):
+        assert (c == cat).mean() == pytest.approx(1 / 3, abs=0.04)
+    assert not np.concatenate([s.sample()[1] for _ in range(5)]).any()  # flip_share 0
+
+
+@pytest.mark.parametrize("sim_loss", ["bce", "l1"])
+def test_similarity_loss_is_bce_or_l1_to_the_running_accuracy(data, sim_loss):
+    torch.manual_seed(0)
+    model = __import__("w2e_ros.core.model", fromlist=["W2EModel"]).W2EModel(SMALL)
+    rows = np.flatnonzero(data.interaction_category != "cabinet")[:30]  # C_sim only
+    batch = make_batch(data, rows, ("cabinet",), ("cabinet", "faucet", "window"), CPU)
+    with torch.no_grad():
+        f = model.encode(batch.clouds)[batch.cloud_of, batch.point_index]
+        right = ((model.aff_head(f, batch.actions) > 0).float() == batch.success).float()
+        logit = model.sim_head(f, batch.actions)
+    # a fresh counter: the target is this prediction's correctness
+    _, stats = training_losses(model, batch, RunningAccuracy(), sim_loss=sim_loss)
+    if sim_loss == "bce":
+        expect = torch.nn.functional.binary_cross_entropy_with_logits(logit, right)
+    else:
+        expect = (torch.sigmoid(logit) - right).abs().mean()
+    assert stats["loss_sim"] == pytest.approx(float(expect), rel=1e-4)
+    assert stats["loss_aff"] == 0.0 and stats["loss"] == pytest.approx(stats["loss_sim"])
+    with pytest.raises(ValueError, match="similarity loss"):
+        training_losses(model, batch, RunningAccuracy(), sim_loss="l2")
+
+
+# --- validation, the best model and the early stop ---------------------------------------
+
+@pytest.fixture(scope="module")
+def val_data():
+    """Held-out (test-split) instances of the training categories and a novel category,
+    plus a train-split cloud the validator must ignore."""
+    held = synthetic_data(categories=("cabinet", "faucet", "window", "kettle"), obs_per_cat=2,
+                          per_obs=24, seed=11, instance_start=40)
+    seen = synthetic_data(categories=("cabinet",), obs_per_cat=1, per_obs=24, seed=12)
+    return InteractionData.concat([held, seen])
+
+
+def test_validator_scores_held_out_instances_of_the_training_categories(val_data):
+    v = Validator(val_data, ("cabinet",), ("cabinet", "faucet", "window"), "push")
+    assert v.data.num_observations == 8 and (v.data.instance >= 40).all()
+    assert set(v.groups) == {"caff", "csim", "novel"}
+    assert int(v.groups["novel"].sum()) == 2 * 24
+    torch.manual_seed(0)
+    model = __import__("w2e_ros.core.model", fromlist=["W2EModel"]).W2EModel(SMALL)
+    out = v.run(model)
+    aff, _ = predict_interactions(model, v.data)
+    cats = v.data.interaction_category
+    per_cat = [auroc(aff[cats == c], v.data.success[cats == c])
+               for c in ("cabinet", "faucet", "window")]  # the novel kettle does not count
+    assert out["score"] == pytest.approx(float(np.mean(per_cat)))
+    m = v.groups["caff"]
+    assert out["caff_auroc"] == pytest.approx(auroc(aff[m], v.data.success[m]))
+    assert {"csim_valid_ap", "novel_fscore", "caff_simcorr_auroc"} <= set(out)
+    with pytest.raises(ValueError, match="held-out"):
+        Validator(val_data.select(categories=["kettle"]), ("cabinet",),
+                  ("cabinet", "faucet", "window"), "push")
+
+
+def test_train_keeps_the_best_validated_model(tmp_path, data, val_data):
+    data.save_shard(tmp_path / "data" / "shard-00000.npz")
+    out = tmp_path / "run"
+    cfg = _cfg(steps=8, val_every=2, patience=100, log_every=100, ckpt_every=100)
+    path = train(cfg, tmp_path / "data", out, val_data=val_data, progress=False,
+                 model_cfg=SMALL)
+    recs = [json.loads(s) for s in (out / "metrics.jsonl").read_text().splitlines()]
+    val = [r for r in recs if "val_score" in r]
+    assert [r["step"] for r in val] == [2, 4, 6, 8]
+    scores = [r["val_score"] for r in val]
+    best = val[int(np.argmax(scores))]  # the first of equal scores: later ones are no better
+    model, meta = load_model(path, "cpu")
+    assert meta["step"] == best["step"] and meta["best_score"] == pytest.approx(max(scores))
+    assert val[-1]["best_step"] == best["step"]
+    # model.pt holds the weights that scored best, state.pt the latest
+    v = Validator(val_data, ("cabinet",), ("cabinet", "faucet", "window"), "push")
+    assert v.run(model)["score"] == pytest.approx(max(scores), abs=1e-6)
+    state = torch.load(out / "state.pt", weights_only=True)
+    assert state["step"] == 8
+    same = all(torch.equal(state["model"][k], w) for k, w in model.state_dict().items())
+    assert same == (best["step"] == 8)
+    assert (out / "curves.png").stat().st_size > 0
+
+
+def test_train_stops_when_validation_levels_off(tmp_path, data, val_data):
+    data.save_shard(tmp_path / "data" / "shard-00000.npz")
+    out = tmp_path / "run"
+    # lr 0: the score never improves after the first validation
+    cfg = _cfg(steps=50, lr=0.0, val_every=2, patience=3, log_every=100, ckpt_every=100)
+    path = train(cfg, tmp_path / "data", out, val_data=val_data, progress=False,
+                 model_cfg=SMALL)
+    recs = [json.loads(s) for s in (out / "metrics.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in recs] == [2, 4, 6, 8]  # best at 2, then 3 without progress
+    assert len({r["val_score"] for r in recs}) == 1
+    _, meta = load_model(path, "cpu")
+    assert meta["step"] == 2
+    state = torch.load(out / "state.pt", weights_only=True)
+    assert state["step"] == 8
+    assert state["best"].tolist() == [pytest.approx(recs[0]["val_score"]), 2.0, 3.0]
+
+
+def test_calibration_refits_only_the_similarity_head_to_the_final_correctness(data):
+    from w2e_ros.core.train import calibrate_similarity
+
+    torch.manual_seed(0)
+    model = __import__("w2e_ros.core.model", fromlist=["W2EModel"]).W2EModel(SMALL)
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    stats = calibrate_similarity(model, data, ("cabinet", "faucet", "window"), steps=80,
+                                 batch=64)
+    after = model.state_dict()
+    changed = {k for k in before if not torch.equal(before[k], after[k])}
+    assert changed and all(k.startswith("sim_head.") for k in changed)
+    # the re-fitted head ranks the (unchanged) affordance head's right answers first
+    aff, sim = predict_interactions(model, data, cache=None)
+    correct = (aff > 0.5) == data.success
+    assert stats["rows"] == data.num_interactions
+    assert stats["train_correct_rate"] == pytest.approx(correct.mean())
+    assert auroc(sim, correct) > 0.6

@@ -73,14 +73,32 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--method", default="w2e", choices=["w2e", "where2act", "fulldata"])
     p.add_argument("--combo", default="cfw", choices=["cfw", "csr", "tfr", "tsw"])
     p.add_argument("--primitive", default="push", choices=["push", "pull"])
-    p.add_argument("--steps", type=int, default=None, help="optimizer steps (default 2000)")
+    p.add_argument("--steps", type=int, default=None,
+                   help="most optimizer steps (default 6000; validation may stop earlier)")
     p.add_argument("--epochs", type=float, default=None,
                    help="alternative to --steps: passes over the training interactions")
     p.add_argument("--clouds", type=int, default=4, help="clouds (encoder passes) per batch")
-    p.add_argument("--per-cloud", type=int, default=16, help="interactions per cloud")
+    p.add_argument("--per-cloud", type=int, default=32, help="interactions per cloud")
     p.add_argument("--lr", type=float, default=1e-3)
-    p.add_argument("--val-data", default=None,
-                   help="collection to report the affordance F-score on at checkpoints")
+    p.add_argument("--weight-decay", type=float, default=1e-5)
+    p.add_argument("--sim-loss", default="bce", choices=["bce", "l1"],
+                   help="similarity loss to the running accuracy (reference code: bce)")
+    p.add_argument("--aff-share", type=float, default=0.5,
+                   help="share of each batch's clouds from C_aff (w2e)")
+    p.add_argument("--flip-share", type=float, default=0.25,
+                   help="share of each cloud's rows that are flipped-approach negatives")
+    p.add_argument("--exclude-invalid", action="store_true",
+                   help="train on valid trials only (default: invalid trials are failures)")
+    p.add_argument("--val-data", nargs="+", default=None,
+                   help="collections with held-out instances (e.g. --split test of the "
+                        "training categories): validation every --val-every steps, best "
+                        "model kept, early stop after --patience validations without gain")
+    p.add_argument("--val-every", type=int, default=250)
+    p.add_argument("--calibrate-steps", type=int, default=2000,
+                   help="steps re-fitting the similarity head to the final affordance head's "
+                        "correctness (0: keep the jointly trained head); a --resume of a "
+                        "finished run only re-runs this")
+    p.add_argument("--patience", type=int, default=6)
     p.add_argument("--resume", action="store_true", help="continue the run in --out")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
@@ -98,9 +116,13 @@ def _run_train(a: argparse.Namespace) -> int:
     from w2e_ros.core.train import load_training_data, run_name, train
 
     cfg = TrainConfig(method=a.method, combo=a.combo, primitive=a.primitive, lr=a.lr,
+                      weight_decay=a.weight_decay, sim_loss=a.sim_loss,
+                      aff_share=a.aff_share, flip_share=a.flip_share,
+                      include_invalid=not a.exclude_invalid,
                       clouds_per_batch=a.clouds, interactions_per_cloud=a.per_cloud,
                       seed=a.seed, threads=a.threads, log_every=a.log_every,
-                      ckpt_every=a.ckpt_every)
+                      ckpt_every=a.ckpt_every, val_every=a.val_every, patience=a.patience,
+                      calibrate_steps=a.calibrate_steps)
     if a.steps is not None:
         cfg.steps = a.steps
     elif a.epochs is not None:
@@ -109,7 +131,8 @@ def _run_train(a: argparse.Namespace) -> int:
     out = a.out or f"runs/{run_name(a.method, a.combo, a.primitive)}"
     val = None
     if a.val_data:
-        val = InteractionData.load(a.val_data).select(primitive=a.primitive)
+        val = InteractionData.concat([InteractionData.load(d) for d in a.val_data])
+        val = val.select(primitive=a.primitive)
     path = train(cfg, a.data, out, resume=a.resume, val_data=val, progress=not a.no_progress)
     print(f"model: {path}")
     return 0
@@ -119,26 +142,32 @@ def _add_explore_args(p: argparse.ArgumentParser) -> None:
     """The few-shot loop's settings, shared by ``fewshot`` and ``benchmark``."""
     p.add_argument("--points", type=int, default=256, help="candidate points per object")
     p.add_argument("--dirs", type=int, default=8, help="candidate actions per point")
-    p.add_argument("--finetune-steps", type=int, default=8,
-                   help="gradient steps after each round of interactions")
-    p.add_argument("--finetune-lr", type=float, default=1e-4, help="fine-tuning learning rate")
-    p.add_argument("--movable-only", action="store_true",
-                   help="exploration candidates only on ground-truth movable points "
-                        "(simulation only; the reference implementation explores this way)")
+    p.add_argument("--round-size", type=int, default=0,
+                   help="interactions per round between model updates (0: objects / 5)")
+    p.add_argument("--finetune", default="heads", choices=["heads", "all"],
+                   help="fine-tune the heads on cached features (encoder frozen) or every "
+                        "weight")
+    p.add_argument("--finetune-steps", type=int, default=300,
+                   help="most gradient steps per update (stops when the explored-set fit "
+                        "levels off)")
+    p.add_argument("--finetune-lr", type=float, default=1e-3, help="fine-tuning learning rate")
+    p.add_argument("--replay-fraction", type=float, default=0.01,
+                   help="share of the training interactions replayed (distinct ones)")
+    p.add_argument("--no-mask", action="store_true",
+                   help="propose candidates without the simulator's movable mask (what a real "
+                        "robot has)")
     p.add_argument("--bar", type=float, default=0.9,
-                   help="mean similarity that ends exploration early (>1: never)")
-    p.add_argument("--budget-per", default="category", choices=["category", "object"],
-                   help="the budget counts interactions per novel category, or per explore "
-                        "instance as in the paper (10 instances x 5 = 50 per category)")
+                   help="mean similarity of an object that ends its exploration (>1: never)")
 
 
 def _explore_config(a: argparse.Namespace, **kw: object) -> ExploreConfig:
     from w2e_ros.core.config import ExploreConfig
 
     return ExploreConfig(points_per_object=a.points, dirs_per_point=a.dirs,
+                         round_size=a.round_size, finetune=a.finetune,
                          finetune_steps=a.finetune_steps, finetune_lr=a.finetune_lr,
-                         movable_only=a.movable_only, sim_bar=a.bar,
-                         budget_per=a.budget_per, **kw)
+                         replay_fraction=a.replay_fraction, use_mask=not a.no_mask,
+                         sim_bar=a.bar, **kw)
 
 
 def _add_fewshot(sub: argparse._SubParsersAction) -> None:
@@ -150,12 +179,13 @@ def _add_fewshot(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--replay-data", default=None,
                    help="training collection replayed during fine-tuning (~1%%)")
     p.add_argument("--strategy", default="similarity",
-                   choices=["similarity", "where2act", "nosim", "random", "none"])
+                   choices=["similarity", "where2act", "nosim", "random", "oracle", "none"])
     p.add_argument("--mode", default="all", choices=["all", "per-category"],
                    help="all novel categories in one run, or one run per category")
     p.add_argument("--categories", nargs="+", default=None,
                    help="novel categories to explore (default: the 11 not in the combination)")
-    p.add_argument("--budget", type=int, default=5, help="interactions per run")
+    p.add_argument("--budget", type=int, default=5,
+                   help="interactions per explore object (chosen globally over the objects)")
     p.add_argument("--objects", type=int, default=10, help="explore instances per category")
     _add_explore_args(p)
     p.add_argument("--out", required=True, help="directory for adapted models and records")
@@ -206,6 +236,54 @@ def _run_fewshot(a: argparse.Namespace) -> int:
               f"{res.mean_similarity[-1]:.3f}")
     print(f"adapted models: {out}")
     return 0
+
+
+def _add_learnability(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "learnability", help="test metrics after fine-tuning on N explored interactions",
+        description="Diagnostic before any strategy comparison: fine-tune the model on N "
+                    "interactions from a collection on the EXPLORE instances of the novel "
+                    "categories (random, or the N the model gets most wrong: oracle) and "
+                    "score it on the TEST interactions. Writes a table, JSON and a plot.")
+    p.add_argument("--model", required=True, help="base checkpoint (w2e train's model.pt)")
+    p.add_argument("--pool-data", required=True,
+                   help="collection on explore instances (w2e collect --split explore)")
+    p.add_argument("--test-data", required=True,
+                   help="test-split collection (with --validate: the explore collection)")
+    p.add_argument("--replay-data", default=None, help="training collection (replay)")
+    p.add_argument("--sizes", nargs="+", type=int, default=[0, 55, 110, 275, 550, 1100, 2200])
+    p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    p.add_argument("--selections", nargs="+", default=["random", "oracle"],
+                   choices=["random", "oracle"])
+    p.add_argument("--categories", nargs="+", default=None)
+    p.add_argument("--references", nargs="+", default=[],
+                   help="other checkpoints drawn as lines (e.g. the fulldata model)")
+    p.add_argument("--validate", action="store_true",
+                   help="pool from explore instances 30-34, judge on 35-39 (never the test "
+                        "split): for choosing settings")
+    _add_explore_args(p)
+    p.add_argument("--out", default="results/learnability")
+    p.add_argument("--threads", type=int, default=2)
+    p.set_defaults(func=_run_learnability)
+
+
+def _run_learnability(a: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    import torch
+
+    from w2e_ros.core.learnability import LearnabilityConfig, run_learnability
+
+    torch.set_num_threads(a.threads)
+    cfg = LearnabilityConfig(
+        model=a.model, pool_data=a.pool_data, test_data=a.test_data,
+        replay_data=a.replay_data, out=a.out, sizes=tuple(a.sizes), seeds=tuple(a.seeds),
+        selections=tuple(a.selections), validate=a.validate,
+        categories=tuple(a.categories) if a.categories else None,
+        references=tuple(a.references), explore=_explore_config(a))
+    summary = run_learnability(cfg)
+    print(Path(a.out, "learnability.md").read_text())
+    return 0 if summary["curves"] else 1
 
 
 def _add_evaluate(sub: argparse._SubParsersAction) -> None:
@@ -284,7 +362,9 @@ def _add_benchmark(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seeds", nargs="+", type=int, default=[0])
     p.add_argument("--primitives", nargs="+", default=["push", "pull"])
     p.add_argument("--methods", nargs="+", default=["none", "random", "where2act", "nosim",
-                                                    "similarity", "fulldata"])
+                                                    "similarity", "oracle", "fulldata"],
+                   choices=["none", "random", "where2act", "nosim", "similarity", "oracle",
+                            "fulldata"])
     p.add_argument("--budgets", nargs="+", type=int, default=[1, 2, 5])
     p.add_argument("--mode", default="all", choices=["all", "per-category"])
     p.add_argument("--categories", nargs="+", default=None,
@@ -297,6 +377,10 @@ def _add_benchmark(sub: argparse._SubParsersAction) -> None:
                    help="judge on held-out explore instances (with --test-data from `w2e collect "
                         "--split explore`), never on the test split: for choosing settings")
     p.add_argument("--no-heatmaps", action="store_true")
+    p.add_argument("--bootstrap", type=int, default=500, help="resamples for the intervals")
+    p.add_argument("--summarize-only", action="store_true",
+                   help="recompute benchmark.json / tables / curves from the predictions "
+                        "files already in --out (e.g. after runs in parallel processes)")
     p.add_argument("--threads", type=int, default=2)
     p.set_defaults(func=_run_benchmark)
 
@@ -306,7 +390,7 @@ def _run_benchmark(a: argparse.Namespace) -> int:
 
     import torch
 
-    from w2e_ros.core.benchmark import BenchmarkConfig, run_benchmark
+    from w2e_ros.core.benchmark import BenchmarkConfig, run_benchmark, summarize
 
     torch.set_num_threads(a.threads)
     cfg = BenchmarkConfig(
@@ -316,8 +400,11 @@ def _run_benchmark(a: argparse.Namespace) -> int:
         categories=tuple(a.categories) if a.categories else None,
         explore_objects=a.explore_objects, test_objects=a.test_objects, validate=a.validate,
         eval_points=a.points, eval_dirs=a.dirs, heatmaps=not a.no_heatmaps,
-        explore=_explore_config(a))
-    run_benchmark(cfg)
+        bootstrap=a.bootstrap, explore=_explore_config(a))
+    if a.summarize_only:
+        summarize(a.out, cfg)
+    else:
+        run_benchmark(cfg)
     print((Path(a.out) / "tables.md").read_text())
     return 0
 
@@ -385,6 +472,7 @@ def _run_replay(a: argparse.Namespace) -> int:
 
 
 VERBS: list[Callable[[argparse._SubParsersAction], None]] = [_add_collect, _add_train,
+                                                              _add_learnability,
                                                               _add_fewshot, _add_evaluate,
                                                               _add_benchmark, _add_demo,
                                                               _add_bringup, _add_record,
@@ -403,7 +491,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 # verbs that train or run the network: glibc's default allocator makes their big, short-lived
 # tensors page-fault constantly; huge pages made batch training 2-2.7x faster (DESIGN §6)
-_TENSOR_VERBS = {"train", "fewshot", "evaluate", "benchmark", "demo"}
+_TENSOR_VERBS = {"train", "fewshot", "evaluate", "benchmark", "demo", "learnability"}
 
 
 def _reexec_with_hugepages(argv: list[str]) -> None:

@@ -1,14 +1,22 @@
-"""``w2e benchmark``: methods x budgets x primitives, over combinations and seeds (paper Tab. 1-3).
+"""``w2e benchmark``: methods x budgets x primitives over combinations and seeds (paper Tab. 1-3).
 
 Methods (model kind, exploration strategy):
   none (w2e, none) - random (w2e, random) - nosim (w2e, where2act rule) -
-  similarity (w2e, lowest similarity) - where2act (where2act baseline, its rule) -
-  fulldata (fulldata baseline, none).
+  similarity (w2e, lowest similarity) - oracle (w2e, hindsight: most wrong first) -
+  where2act (where2act baseline, its rule) - fulldata (fulldata baseline, none).
 Every exploring method runs ONCE per (combination, seed, primitive) up to the largest budget
-and is evaluated from its snapshots at each budget. Metrics per novel category: F-score on
-the held-out test interactions, sample success in the simulator on test objects (the same
-candidate actions for every method). Written to ``--out``: ``rows.jsonl`` (one per value),
-``tables.md`` (mean +- std), ``metrics_vs_budget.png`` and heatmap PNGs.
+and is evaluated from its snapshots at each budget (budget 0: before exploring). On the
+held-out test interactions: F-score at 0.5, AUROC, average precision, and the similarity's
+AUROC for "the prediction is right"; in the simulator: sample success of the best action on
+each test object (the same candidates for every method).
+
+Uncertainty: every metric is a mean over seeds with a 95 % bootstrap interval that resamples
+test observations (clouds, not rows: rows of one cloud are not independent) or test objects,
+and seeds; differences against ``random`` and ``none`` are PAIRED (the same resample for both
+methods). Written to ``--out``: ``benchmark.json`` (combination, method, primitive, budget,
+metric -> mean, ci_low, ci_high, n_seeds, plus the paired differences), ``predictions_*.npz``
+(every prediction, so the statistics can be recomputed), ``tables.md``,
+``metrics_vs_budget.png`` and heatmaps.
 """
 
 from __future__ import annotations
@@ -34,7 +42,7 @@ from w2e_ros.core.evaluate import (
     predict_interactions,
 )
 from w2e_ros.core.explore import fewshot
-from w2e_ros.core.metrics import fscore, mean_std
+from w2e_ros.core.metrics import auroc, average_precision, fscore
 from w2e_ros.core.model import W2EModel, load_model
 from w2e_ros.core.strategies import get_strategy
 
@@ -46,8 +54,11 @@ METHOD_SPEC: dict[str, tuple[str, str]] = {
     "where2act": ("where2act", "where2act"),
     "nosim": ("w2e", "nosim"),
     "similarity": ("w2e", "similarity"),
+    "oracle": ("w2e", "oracle"),
     "fulldata": ("fulldata", "none"),
 }
+REFERENCES = ("random", "none")  # paired differences are reported against these
+METRICS = ("fscore", "auroc", "ap", "simcorr_auroc", "success")
 
 
 @dataclass
@@ -69,6 +80,7 @@ class BenchmarkConfig:
     eval_points: int = 256
     eval_dirs: int = 8
     heatmaps: bool = True
+    bootstrap: int = 500  # resamples for the intervals
     explore: ExploreConfig = field(default_factory=ExploreConfig)
 
 
@@ -86,43 +98,27 @@ def find_checkpoint(runs_dir: str | Path, kind: str, combo: str, primitive: str)
 
 
 class _Evaluator:
-    """Per-category test interactions and success probes of one (combination, primitive)."""
+    """Test interactions and the success probe of one (combination, primitive)."""
 
     def __init__(self, cfg: BenchmarkConfig, world: Any, cats: list[str], primitive: str,
                  test: InteractionData | None) -> None:
-        self.cats = cats
-        self.test = {c: test.select(categories=[c]) for c in cats} if test is not None else {}
-        self.probes = {}
+        self.cats, self.test = cats, test
+        self.probe = None
         if cfg.test_objects > 0:
-            self.probes = {c: SuccessProbe(world, evaluation_targets(
-                [c], cfg.test_objects, validate=cfg.validate, explored=cfg.explore_objects),
-                primitive, cfg.eval_points, cfg.eval_dirs)
-                           for c in cats}
+            self.probe = SuccessProbe(world, evaluation_targets(
+                cats, cfg.test_objects, validate=cfg.validate, explored=cfg.explore_objects),
+                primitive, cfg.eval_points, cfg.eval_dirs,
+                use_mask=cfg.explore.use_mask)
 
-    def category(self, model: W2EModel, c: str) -> dict[str, Any]:
-        out: dict[str, Any] = {}
-        t = self.test.get(c)
-        if t is not None and t.num_interactions:
-            aff, _ = predict_interactions(model, t)
-            out["counts"] = fscore(aff > 0.5, t.success)
-        if c in self.probes:
-            out["success"] = self.probes[c].run(model)[c]
+    def predict(self, model: W2EModel) -> dict[str, np.ndarray]:
+        out: dict[str, np.ndarray] = {}
+        if self.test is not None and self.test.num_interactions:
+            out["aff"], out["sim"] = predict_interactions(model, self.test)
+        if self.probe is not None:
+            oc = self.probe.outcomes(model)
+            out["success"] = np.array([o[0] for o in oc])
+            out["valid"] = np.array([o[1] for o in oc])
         return out
-
-
-def _pool(per_cat: dict[str, dict[str, Any]]) -> dict[str, float]:
-    """F-score from pooled counts and success over all objects, across categories."""
-    out: dict[str, float] = {}
-    counts = [v["counts"] for v in per_cat.values() if "counts" in v]
-    if counts:
-        tp, fp, fn = (sum(c[k] for c in counts) for k in ("tp", "fp", "fn"))
-        p = tp / (tp + fp) if tp + fp else 0.0
-        r = tp / (tp + fn) if tp + fn else 0.0
-        out["fscore"] = 2 * p * r / (p + r) if p + r else 0.0
-    succ = [v["success"] for v in per_cat.values() if "success" in v]
-    if succ:
-        out["success"] = float(np.mean(succ))  # equal objects per category: = pooled rate
-    return out
 
 
 def run_benchmark(cfg: BenchmarkConfig, world: Any | None = None) -> dict:
@@ -136,11 +132,12 @@ def run_benchmark(cfg: BenchmarkConfig, world: Any | None = None) -> dict:
     world = world or SimWorld()
     train_all = InteractionData.load(cfg.train_data) if cfg.train_data else None
     test_all = InteractionData.load(cfg.test_data) if cfg.test_data else None
-    rows: list[dict] = []
-    rows_f = (out / "rows.jsonl").open("w")
     max_budget = max(cfg.budgets)
     heat_done: set[str] = set()
     t_start = time.perf_counter()
+    jobs = [(p, c, s, m) for p in cfg.primitives for c in cfg.combos for s in cfg.seeds
+            for m in cfg.methods]
+    done = 0
     for prim in cfg.primitives:
         for combo in cfg.combos:
             novel = cats_cfg.novel(combo)
@@ -153,8 +150,11 @@ def run_benchmark(cfg: BenchmarkConfig, world: Any | None = None) -> dict:
                     instances=evaluation_instances(c, cfg.validate, cfg.explore_objects))
                     for c in novel])
             ev = _Evaluator(cfg, world, novel, prim, test)
+            preds: dict[str, np.ndarray] = {}
+            explored_log: dict[str, Any] = {}
             for seed in cfg.seeds:
                 for method in cfg.methods:
+                    done += 1
                     kind, strat_name = METHOD_SPEC[method]
                     ckpt = find_checkpoint(cfg.runs_dir, kind, combo, prim)
                     if ckpt is None:
@@ -173,10 +173,10 @@ def run_benchmark(cfg: BenchmarkConfig, world: Any | None = None) -> dict:
                     if train_all is not None and strategy.explores:
                         tc = list(dict.fromkeys(meta.get("aff_categories", []) +
                                                 meta.get("sim_categories", [])))
-                        replay = train_all.select(primitive=prim, categories=tc)
-                    # per category: {budget: model}
+                        replay = train_all.select(
+                            primitive=prim, categories=tc,
+                            instances=cats_cfg.instances(tc[0], "train"))
                     models: dict[str, dict[int, W2EModel]] = {}
-                    explored: dict[str, list] = {}
                     if strategy.explores:
                         runs = fewshot(model, meta, world, novel, strategy, ecfg, prim, replay,
                                        cfg.mode, cfg.explore_objects)
@@ -185,36 +185,58 @@ def run_benchmark(cfg: BenchmarkConfig, world: Any | None = None) -> dict:
                                      for b in (0, *cfg.budgets)}
                             for c in (novel if group == "all" else [group]):
                                 models[c] = snaps
-                                explored[c] = [asdict(s) for s in res.steps]
+                            explored_log[f"{method}_s{seed}_{group}"] = {
+                                "stopped": res.stopped, "steps": [asdict(x) for x in res.steps],
+                                "mean_similarity": res.mean_similarity,
+                                "fit": explorer.fit_log}
                     else:
                         models = {c: {b: model for b in (0, *cfg.budgets)} for c in novel}
-                    for b in cfg.budgets:
-                        per_cat = {c: ev.category(models[c][b], c) for c in novel}
-                        pooled = _pool(per_cat)
-                        base = {"primitive": prim, "combo": combo, "seed": seed,
-                                "method": method, "budget": b}
-                        for c, v in [*per_cat.items(), ("all", pooled)]:
-                            for metric in ("fscore", "success"):
-                                val = v.get(metric, v.get("counts", {}).get(metric))
-                                if val is None:
-                                    continue
-                                row = {**base, "category": c, "metric": metric,
-                                       "value": float(val)}
-                                rows.append(row)
-                                rows_f.write(json.dumps(row) + "\n")
-                        rows_f.flush()
-                    log.info("%s %s %s seed %d done in %.0f s", prim, combo, method, seed,
-                             time.perf_counter() - t0)
-                    if explored:
-                        (out / f"explored_{prim}_{combo}_{method}_s{seed}.json").write_text(
-                            json.dumps(explored, indent=1))
+                    for b in (0, *cfg.budgets):
+                        if cfg.mode == "all":
+                            p = ev.predict(models[novel[0]][b])
+                        else:  # each category judged with its own adapted model
+                            p = _merge_per_category(ev, models, b, novel)
+                        for k, v in p.items():
+                            preds[f"{method}|{seed}|{b}|{k}"] = v
+                    elapsed = time.perf_counter() - t_start
+                    log.info("[%d/%d] %s %s %s seed %d done in %.0f s (eta %.0f s)", done,
+                             len(jobs), prim, combo, method, seed, time.perf_counter() - t0,
+                             elapsed / done * (len(jobs) - done))
+                    _save_predictions(out / f"predictions_{combo}_{prim}.npz", preds, ev)
                     if cfg.heatmaps and method == "similarity" and prim not in heat_done:
                         _heatmaps(out, prim, combo, world, novel, models, cfg)
                         heat_done.add(prim)
-    rows_f.close()
-    summary = summarize(rows, cfg)
+            (out / f"explored_{combo}_{prim}.json").write_text(json.dumps(explored_log))
+    summary = summarize(out, cfg)
     log.info("benchmark done in %.0f s: %s", time.perf_counter() - t_start, out)
     return summary
+
+
+def _merge_per_category(ev: _Evaluator, models: dict[str, dict[int, W2EModel]], b: int,
+                        cats: list[str]) -> dict[str, np.ndarray]:
+    """Per-category mode: every category's rows / objects predicted by its own model."""
+    merged: dict[str, np.ndarray] = {}
+    for c in cats:
+        p = ev.predict(models[c][b])
+        for k, v in p.items():
+            if k in ("aff", "sim"):
+                mask = ev.test.interaction_category == c
+            else:
+                mask = np.array([t.category == c for t in ev.probe.targets])
+            merged.setdefault(k, np.zeros_like(v))[mask] = v[mask]
+    return merged
+
+
+def _save_predictions(path: Path, preds: dict[str, np.ndarray], ev: _Evaluator) -> None:
+    arrays = {f"pred:{k}": v for k, v in preds.items()}
+    if ev.test is not None:
+        arrays["test:success"] = ev.test.success
+        arrays["test:valid"] = ev.test.valid
+        arrays["test:obs"] = ev.test.obs_index
+        arrays["test:category"] = ev.test.interaction_category.astype(str)
+    if ev.probe is not None:
+        arrays["probe:category"] = np.array([t.category for t in ev.probe.targets], str)
+    np.savez_compressed(path, **arrays)
 
 
 def _heatmaps(out: Path, prim: str, combo: str, world: Any, cats: list[str],
@@ -237,48 +259,170 @@ def _heatmaps(out: Path, prim: str, combo: str, world: Any, cats: list[str],
                        camera_pose=getattr(cloud, "camera_pose", None))
 
 
-def summarize(rows: list[dict], cfg: BenchmarkConfig) -> dict:
-    """Mean +- std over combinations x seeds; markdown tables and the curves plot."""
+def _metric(name: str, p: dict[str, np.ndarray], y: np.ndarray, rows: np.ndarray,
+            objs: np.ndarray) -> float:
+    if name == "success":
+        return float(np.mean(p["success"][objs])) if "success" in p else float("nan")
+    if "aff" not in p:
+        return float("nan")
+    a = p["aff"][rows]
+    if name == "fscore":
+        return fscore(a > 0.5, y[rows])["fscore"]
+    if name == "auroc":
+        return auroc(a, y[rows])
+    if name == "ap":
+        return average_precision(a, y[rows])
+    if name == "simcorr_auroc":
+        return auroc(p["sim"][rows], (a > 0.5) == y[rows])
+    raise ValueError(name)
+
+
+def _stats(path: Path, cfg: BenchmarkConfig, rng: np.random.Generator) -> list[dict]:
+    """Means and paired bootstrap intervals of one (combination, primitive) file."""
+    z = np.load(path)
+    preds: dict[tuple[str, int, int], dict[str, np.ndarray]] = defaultdict(dict)
+    for k in z.files:
+        if k.startswith("pred:"):
+            method, seed, b, what = k[5:].split("|")
+            preds[(method, int(seed), int(b))][what] = z[k]
+    y = z["test:success"] if "test:success" in z.files else np.zeros(0, bool)
+    obs = z["test:obs"] if "test:obs" in z.files else np.zeros(0, int)
+    n_obj = len(z["probe:category"]) if "probe:category" in z.files else 0
+    members = [np.flatnonzero(obs == o) for o in np.unique(obs)]
+    combo, prim = path.stem.split("_")[1:3]
+    methods = [m for m in cfg.methods if any(k[0] == m for k in preds)]
+    seeds = sorted({k[1] for k in preds})
+    budgets = (0, *cfg.budgets)
+    all_rows, all_objs = np.arange(len(y)), np.arange(n_obj)
+
+    def value(method: str, b: int, metric: str, rows: np.ndarray, objs: np.ndarray,
+              seed_pick: list[int]) -> float:
+        vals = [_metric(metric, preds[(method, s, b)], y, rows, objs) for s in seed_pick
+                if (method, s, b) in preds]
+        return float(np.nanmean(vals)) if vals and np.isfinite(vals).any() else float("nan")
+
+    boots = []
+    for _ in range(cfg.bootstrap):
+        pick = rng.integers(len(members), size=len(members)) if members else np.zeros(0, int)
+        rows = np.concatenate([members[i] for i in pick]) if len(pick) else all_rows
+        objs = rng.integers(n_obj, size=n_obj) if n_obj else all_objs
+        boots.append((rows, objs, list(rng.choice(seeds, size=len(seeds)))))
+    out = []
+    for metric in METRICS:
+        for method in methods:
+            for b in budgets:
+                point = value(method, b, metric, all_rows, all_objs, seeds)
+                if not np.isfinite(point):
+                    continue
+                bs = np.array([value(method, b, metric, r, o, sp) for r, o, sp in boots])
+                base = {"combination": combo, "primitive": prim, "method": method,
+                        "budget": b, "metric": metric, "n_seeds": len(seeds)}
+                out.append({**base, "mean": point, **_ci(bs)})
+                for ref in REFERENCES:
+                    if ref == method or ref not in methods:
+                        continue
+                    d = point - value(ref, b, metric, all_rows, all_objs, seeds)
+                    bd = bs - np.array([value(ref, b, metric, r, o, sp) for r, o, sp in boots])
+                    out.append({**base, "vs": ref, "mean": d, **_ci(bd)})
+    return out
+
+
+def _ci(samples: np.ndarray) -> dict[str, float]:
+    s = samples[np.isfinite(samples)]
+    if not len(s):
+        return {"ci_low": float("nan"), "ci_high": float("nan")}
+    lo, hi = np.percentile(s, [2.5, 97.5])
+    return {"ci_low": float(lo), "ci_high": float(hi)}
+
+
+def summarize(out: str | Path, cfg: BenchmarkConfig) -> dict:
+    """Statistics of every predictions file in ``out``: benchmark.json, tables.md, curves.
+
+    The mean over combinations averages the per-combination means; its interval averages
+    the per-combination bootstrap draws (combinations are independent experiments)."""
     from w2e_ros.core.viz import metric_curves
 
-    out = Path(cfg.out)
-    groups: dict[tuple, list[float]] = defaultdict(list)
-    for r in rows:
-        groups[(r["primitive"], r["method"], r["budget"], r["metric"], r["category"])].append(
-            r["value"])
-    stats = {k: mean_std(v) for k, v in groups.items()}
-    overall = {k[:4]: v for k, v in stats.items() if k[4] == "all"}
+    out = Path(out)
+    rng = np.random.default_rng(0)
+    rows: list[dict] = []
+    for path in sorted(out.glob("predictions_*.npz")):
+        rows += _stats(path, cfg, rng)
+    combos = sorted({r["combination"] for r in rows})
+    if len(combos) > 1:  # the mean over the combinations
+        groups: dict[tuple, list[dict]] = defaultdict(list)
+        for r in rows:
+            groups[(r["primitive"], r["method"], r["budget"], r["metric"],
+                    r.get("vs"))].append(r)
+        for (prim, method, b, metric, vs), rs in groups.items():
+            if len(rs) == len(combos):
+                rows.append({"combination": "mean", "primitive": prim, "method": method,
+                             "budget": b, "metric": metric, "n_seeds": min(r["n_seeds"]
+                                                                           for r in rs),
+                             **({"vs": vs} if vs else {}),
+                             "mean": float(np.mean([r["mean"] for r in rs])),
+                             "ci_low": float(np.mean([r["ci_low"] for r in rs])),
+                             "ci_high": float(np.mean([r["ci_high"] for r in rs]))})
+    doc = {"config": json.loads(json.dumps(asdict(cfg), default=str)), "rows": rows}
+    (out / "benchmark.json").write_text(json.dumps(doc, indent=1))
+    (out / "tables.md").write_text(benchmark_tables(doc))
+    main = "mean" if len(combos) > 1 else (combos[0] if combos else "")
+    curves = {(r["primitive"], r["method"], r["budget"], r["metric"]):
+              (r["mean"], r["ci_low"], r["ci_high"])
+              for r in rows if r["combination"] == main and "vs" not in r}
+    if curves:
+        metric_curves(curves, cfg.methods, cfg.budgets, out / "metrics_vs_budget.png")
+    return doc
+
+
+def benchmark_tables(doc: dict) -> str:
+    """Markdown tables of a benchmark.json: metrics per method and budget with intervals,
+    and the paired differences against random and none."""
+    rows = doc["rows"]
+    cfg = doc["config"]
+    names = {"fscore": "F-score", "auroc": "AUROC", "ap": "avg precision",
+             "success": "sample success", "simcorr_auroc": "similarity AUROC (correct)"}
     lines = ["# Benchmark", "",
-             f"Mean +- std over combinations {', '.join(cfg.combos)} x seeds "
-             f"{', '.join(map(str, cfg.seeds))}; budgets {' / '.join(map(str, cfg.budgets))}; "
-             f"mode {cfg.mode}; {cfg.explore_objects} explore and {cfg.test_objects} test "
-             "objects per category. Values in %."
+             f"Seeds {cfg['seeds']}; budgets {cfg['budgets']} interactions per explore object "
+             f"(0 = before exploring); mode {cfg['mode']}; {cfg['explore_objects']} explore "
+             f"and {cfg['test_objects']} test objects per category. Values in %, mean "
+             "[95 % bootstrap interval over test observations / objects and seeds]."
              + (" VALIDATION: judged on held-out explore instances, not the test split."
-                if cfg.validate else ""), ""]
-    cols = [(m, p) for m in ("fscore", "success") for p in cfg.primitives]
-    names = {"fscore": "F-score", "success": "sample success"}
-    lines.append("| method | " + " | ".join(f"{names[m]} {p}" for m, p in cols) + " |")
-    lines.append("|---" * (len(cols) + 1) + "|")
-    for method in cfg.methods:
-        cells = []
-        for m, p in cols:
-            vals = [overall.get((p, method, b, m)) for b in cfg.budgets]
-            cells.append(" / ".join(f"{100 * v[0]:.1f}±{100 * v[1]:.1f}" if v else "-"
-                                    for v in vals))
-        lines.append(f"| {method} | " + " | ".join(cells) + " |")
-    b = max(cfg.budgets)
-    cats = sorted({k[4] for k in stats if k[4] != "all"})
-    for m in ("fscore", "success"):
-        for p in cfg.primitives:
-            lines += ["", f"## {names[m]}, {p}, per category (budget {b})", "",
-                      "| method | " + " | ".join(cats) + " |", "|---" * (len(cats) + 1) + "|"]
-            for method in cfg.methods:
-                cells = [stats.get((p, method, b, m, c)) for c in cats]
-                lines.append(f"| {method} | " + " | ".join(
-                    f"{100 * v[0]:.1f}" if v else "-" for v in cells) + " |")
-    (out / "tables.md").write_text("\n".join(lines) + "\n")
-    if overall:
-        metric_curves(overall, cfg.methods, cfg.budgets, out / "metrics_vs_budget.png")
-    summary = {"|".join(map(str, k)): {"mean": v[0], "std": v[1]} for k, v in stats.items()}
-    (out / "summary.json").write_text(json.dumps(summary, indent=1))
-    return summary
+                if cfg.get("validate") else ""), ""]
+    for combo in sorted({r["combination"] for r in rows}, key=lambda c: (c == "mean", c)):
+        for prim in ("push", "pull"):
+            sel = [r for r in rows if r["combination"] == combo and r["primitive"] == prim]
+            if not sel:
+                continue
+            budgets = sorted({r["budget"] for r in sel})
+            lines += [f"## {combo}, {prim}", ""]
+            for metric in METRICS:
+                ms = [r for r in sel if r["metric"] == metric and "vs" not in r]
+                if not ms:
+                    continue
+                lines += [f"**{names[metric]}**", "",
+                          "| method | " + " | ".join(f"budget {b}" for b in budgets) + " |",
+                          "|---" * (len(budgets) + 1) + "|"]
+                for method in dict.fromkeys(r["method"] for r in ms):
+                    cells = []
+                    for b in budgets:
+                        r = next((x for x in ms if x["method"] == method and x["budget"] == b),
+                                 None)
+                        cells.append(_fmt(r))
+                    lines.append(f"| {method} | " + " | ".join(cells) + " |")
+                for ref in REFERENCES:
+                    ds = [r for r in sel if r["metric"] == metric and r.get("vs") == ref]
+                    for method in dict.fromkeys(r["method"] for r in ds):
+                        cells = [_fmt(next((x for x in ds if x["method"] == method
+                                            and x["budget"] == b), None), signed=True)
+                                 for b in budgets]
+                        lines.append(f"| {method} - {ref} | " + " | ".join(cells) + " |")
+                lines.append("")
+    return "\n".join(lines) + "\n"
+
+
+def _fmt(r: dict | None, signed: bool = False) -> str:
+    if r is None or not np.isfinite(r["mean"]):
+        return "-"
+    f = "{:+.1f}" if signed else "{:.1f}"
+    return (f.format(100 * r["mean"]) + f" [{100 * r['ci_low']:.1f}, "
+            f"{100 * r['ci_high']:.1f}]")

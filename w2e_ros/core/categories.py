@@ -20,7 +20,7 @@ class UnknownCategoryError(ValueError):
 @dataclass(frozen=True)
 class CategoryConfig:
     categories: tuple[str, ...]
-    splits: dict[str, tuple[int, int]]
+    splits: dict[str, tuple[tuple[int, int], ...]]  # half-open [start, stop) ranges
     combinations: dict[str, tuple[str, ...]]
     default_combination: str
 
@@ -36,8 +36,7 @@ class CategoryConfig:
         self.check_category(category)
         if split not in self.splits:
             raise UnknownCategoryError(f"unknown split {split!r}; known: {', '.join(SPLITS)}")
-        start, stop = self.splits[split]
-        return list(range(start, stop))
+        return [i for start, stop in self.splits[split] for i in range(start, stop)]
 
     def combination(self, name: str | None = None) -> tuple[str, ...]:
         """Training categories of a combination; the first is C_aff, all three are C_sim."""
@@ -62,8 +61,26 @@ def _parse(path: Path) -> CategoryConfig:
         unknown = [c for c in members if c not in cats]
         if unknown or len(members) != 3:
             raise ValueError(f"{path}: combination {name} is malformed: {members}")
-    splits = {k: (int(v[0]), int(v[1])) for k, v in raw["splits"].items()}
+    splits = {k: _ranges(v, path, k) for k, v in raw["splits"].items()}
+    seen: dict[int, str] = {}
+    for name, ranges in splits.items():
+        for start, stop in ranges:
+            for i in range(start, stop):
+                if i in seen:
+                    raise ValueError(f"{path}: instance {i} is in splits {seen[i]} and {name}")
+                seen[i] = name
     return CategoryConfig(cats, splits, combos, raw["default_combination"])
+
+
+def _ranges(value: list, path: Path, split: str) -> tuple[tuple[int, int], ...]:
+    """``[a, b]`` or ``[[a, b], [c, d], ...]`` -> ((a, b), ...), each checked."""
+    items = value if value and isinstance(value[0], list) else [value]
+    out = []
+    for item in items:
+        if len(item) != 2 or int(item[0]) >= int(item[1]):
+            raise ValueError(f"{path}: split {split} has a malformed range {item}")
+        out.append((int(item[0]), int(item[1])))
+    return tuple(out)
 
 
 @lru_cache(maxsize=4)

@@ -6,11 +6,11 @@ when complete. Re-running the same command skips the chunks already on disk, so 
 interrupted collection resumes where it stopped and the same seed gives the same data.
 
 Random interactions rarely succeed (a pull only works where the fingers can close on
-something), so contact proposals are biased the way Where2Act's collection is, and a bit
-further: most contacts lie on movable parts (ground-truth mask), half of those on the
-protruding tenth of them (handles, knobs, free edges), and half of the approach directions
-lie within 30 deg of the inward normal; the rest is uniform over the hemisphere. The
-fractions are flags of ``w2e collect`` and are stored with every shard.
+something), so contacts come from the proposal distribution of ``proposals.py``, the same one
+the exploration loop draws its candidates from: most contacts on movable parts (ground-truth
+mask), half of those on the protruding tenth of them (handles, knobs, free edges), half of
+the approach directions within 30 deg of the inward normal, the rest uniform over the
+hemisphere. The fractions are flags of ``w2e collect`` and are stored with every shard.
 """
 
 from __future__ import annotations
@@ -32,10 +32,9 @@ import numpy as np
 from tqdm import tqdm
 
 from sim_bridge.types import Action
-from w2e_ros.core.actions import sample_forward, sample_up, sample_up_cone
 from w2e_ros.core.categories import load_categories
 from w2e_ros.core.data import InteractionData
-from w2e_ros.core.pointcloud import protrusion
+from w2e_ros.core.proposals import ProposalConfig, Proposer
 from w2e_ros.core.sim_world import SimWorld, Target, stable_seed
 
 log = logging.getLogger("w2e.collect")
@@ -128,25 +127,13 @@ def _collect_observation(cfg: CollectConfig, category: str, instance: int,
     target = Target(category, instance, obs_seed)
     cloud = _WORLD.observe(target)
     rng = np.random.default_rng(stable_seed("actions", obs_seed))
-    movable_idx = np.flatnonzero(cloud.movable)
-    # the tenth of the movable points that stands out most: handles, knobs, free edges
-    height = protrusion(cloud.points, cloud.normals)
-    grasp_idx = movable_idx[np.argsort(-height[movable_idx])[: max(1, movable_idx.size // 10)]]
+    proposer = Proposer(cloud.points, cloud.normals, cloud.movable, ProposalConfig(
+        cfg.movable_fraction, cfg.grasp_fraction, cfg.cone_fraction, cfg.cone_deg))
     rows: dict[str, list] = defaultdict(list)
     for prim in cfg.primitives:
         for _ in range(cfg.interactions):
-            on_movable = movable_idx.size and rng.random() < cfg.movable_fraction
-            if not on_movable:
-                pool = np.arange(len(cloud.points))
-            else:
-                pool = grasp_idx if rng.random() < cfg.grasp_fraction else movable_idx
-            pidx = int(rng.choice(pool))
-            normal = cloud.normals[pidx][None]
-            if rng.random() < cfg.cone_fraction:
-                up = sample_up_cone(normal, cfg.cone_deg, rng)[0]
-            else:
-                up = sample_up(normal, rng)[0]
-            fwd = sample_forward(up[None], rng)[0]
+            prop = proposer.sample(1, 1, rng)
+            pidx, up, fwd = int(prop.point_index[0]), prop.up[0], prop.forward[0]
             trial_seed = int(rng.integers(0, 2**31 - 1))
             action = Action(point=cloud.points[pidx].astype(np.float64), up=up.astype(np.float64),
                             forward=fwd.astype(np.float64), primitive=prim)

@@ -65,38 +65,50 @@ class TrainConfig:
     method: str = "w2e"
     combo: str = "cfw"
     primitive: str = "push"
-    steps: int = 2000
+    steps: int = 6000  # upper bound: validation stops the run earlier when it levels off
     clouds_per_batch: int = 4  # encoder passes per step (DESIGN §6: the expensive part)
-    interactions_per_cloud: int = 16  # head queries per cloud, half positive, half negative
+    interactions_per_cloud: int = 32  # head queries per cloud, half positive, half negative
     lr: float = 1e-3
-    weight_decay: float = 0.0
-    sim_weight: float = 1.0  # weight of the L1 similarity loss
+    weight_decay: float = 1e-5  # the reference's Adam setting (DESIGN §8)
+    sim_weight: float = 1.0  # weight of the similarity loss (1:1 as the reference)
+    sim_loss: str = "bce"  # bce: soft-target BCE to the running accuracy (reference) | l1
     sim_grad_to_encoder: bool = True  # the similarity loss also shapes the shared encoder
     include_invalid: bool = True  # invalid trials are negatives (they move nothing)
+    aff_share: float = 0.5  # share of each batch's clouds from C_aff (w2e; others equal)
+    flip_share: float = 0.25  # per cloud: flipped-approach copies, labelled failure (§8)
     seed: int = 0
     log_every: int = 20
     ckpt_every: int = 200
+    val_every: int = 250  # steps between validations (with --val-data)
+    patience: int = 6  # validations without a better score before the run stops
+    calibrate_steps: int = 2000  # similarity head re-fitted to the final head's correctness
     threads: int = 2
 
 
 @dataclass
 class ExploreConfig:
-    """Few-shot exploration (paper §3.3 and supplementary)."""
+    """Few-shot exploration (paper §3.3 and supplementary; the reference code, DESIGN §8)."""
 
-    budget: int = 5  # rounds: interactions per category, or per object (budget_per)
-    # "category": one interaction per novel category and round (a budget of 5 = 5 per
-    # category); "object": one per explore instance and round, each instance stopping at the
-    # bar on its own, the paper's reading (10 instances x 5 = 50 per category)
-    budget_per: str = "category"
-    sim_bar: float = 0.9  # stop when the mean similarity exceeds it
-    points_per_object: int = 256  # candidate contact points per object and step
+    # budget b = b interactions per explore object: b x objects in all, chosen globally over
+    # the objects by the strategy (an unfamiliar category may take more than a familiar
+    # one); an object whose mean similarity passes the bar is not explored further
+    budget: int = 5
+    round_size: int = 0  # interactions per round, between model updates (0: objects / 5)
+    per_object_per_round: int = 2  # at most this many of a round's interactions per object
+    sim_bar: float = 0.9  # per object: stop exploring it when its mean similarity exceeds it
+    points_per_object: int = 256  # candidate contact points per object and round
     dirs_per_point: int = 8  # candidate (direction, orientation) per point
-    finetune_steps: int = 8  # gradient steps after each round of interactions
-    finetune_clouds: int = 12  # explored clouds per fine-tune step (newest round always in)
-    finetune_lr: float = 1e-4  # 1e-3 wrecked the trained model within 5 rounds (README)
-    replay_fraction: float = 0.01  # share of the training interactions replayed
-    replay_clouds: int = 4  # replay observations per fine-tune step
-    replay_per_cloud: int = 16
+    use_mask: bool = True  # candidates favour movable points when the cloud has a mask (sim)
+    oracle_pool: int = 24  # oracle: hindsight-labelled candidates per object
+    # fine-tuning after each round: on ALL explored interactions (+ flipped negatives,
+    # class-balanced) and a replay of the training data, until the fit levels off
+    finetune: str = "heads"  # heads: encoder frozen, features cached | all: every weight
+    finetune_steps: int = 300  # most Adam steps per update
+    finetune_min_steps: int = 30
+    finetune_batch: int = 256  # explored rows per step (heads); clouds per step = /16 (all)
+    finetune_lr: float = 1e-3
+    fit_patience: int = 5  # checks (every 10 steps) without a 1 % better explored-set loss
+    replay_fraction: float = 0.01  # distinct training interactions replayed
+    replay_weight: float = 0.5  # weight of the replay loss next to the explored loss
     snapshot_budgets: tuple[int, ...] = field(default=(1, 2, 5))
-    movable_only: bool = False  # candidates only on movable points (needs ground truth)
     seed: int = 0

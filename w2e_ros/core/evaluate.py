@@ -22,34 +22,9 @@ from w2e_ros.core.data import InteractionData
 from w2e_ros.core.explore import Candidates, sample_candidates
 from w2e_ros.core.metrics import affordance_fscore_from_probs, success_rate
 from w2e_ros.core.model import W2EModel
+from w2e_ros.core.predict import FEATURES, encoder_key, predict_interactions
 
 log = logging.getLogger("w2e.evaluate")
-
-
-@torch.no_grad()
-def predict_interactions(model: W2EModel, data: InteractionData,
-                         chunk: int = 16) -> tuple[np.ndarray, np.ndarray]:
-    """(K,) affordance probabilities and (K,) similarities, one encoder pass per cloud."""
-    model.eval()
-    aff = np.zeros(data.num_interactions, np.float32)
-    sim = np.zeros(data.num_interactions, np.float32)
-    order = np.argsort(data.obs_index, kind="stable")
-    obs_sorted = data.obs_index[order]
-    dev = model.device
-    for s in range(0, data.num_observations, chunk):
-        pts = torch.from_numpy(np.ascontiguousarray(data.points[s:s + chunk])).to(dev)
-        feats = model.encode(pts.float())
-        lo, hi = np.searchsorted(obs_sorted, [s, s + chunk])
-        rows = order[lo:hi]
-        if not len(rows):
-            continue
-        f = feats[torch.from_numpy(data.obs_index[rows] - s).long().to(dev),
-                  torch.from_numpy(data.point_index[rows]).long().to(dev)]
-        a = torch.from_numpy(encode_rotation(data.up[rows], data.forward[rows])).to(dev)
-        logit, similarity = model.heads(f, a)
-        aff[rows] = torch.sigmoid(logit).cpu().numpy()
-        sim[rows] = similarity.cpu().numpy()
-    return aff, sim
 
 
 def affordance_fscore(model: W2EModel, data: InteractionData) -> dict[str, float]:
@@ -73,7 +48,11 @@ def fscore_by_category(model: W2EModel, data: InteractionData) -> dict[str, dict
 @dataclass
 class SuccessProbe:
     """Test objects with fixed candidate actions, so every model is judged on the same
-    actions, and executed outcomes cached (the simulator is deterministic per target)."""
+    actions, and executed outcomes cached (the simulator is deterministic per target).
+
+    Candidates come from the proposal distribution, on the movable parts when ``use_mask``
+    (the reference's argmax of affordance x movable mask); the model executes its best one.
+    """
 
     world: Any  # ExplorationWorld
     targets: list[Any]
@@ -81,30 +60,40 @@ class SuccessProbe:
     points_per_object: int = 256
     dirs_per_point: int = 8
     seed: int = 0
+    use_mask: bool = True
 
     def __post_init__(self) -> None:
         rng = np.random.default_rng(self.seed)
         self.clouds = [self.world.observe(t) for t in self.targets]
         self.candidates: list[Candidates] = [
-            sample_candidates(c, self.points_per_object, self.dirs_per_point, rng)
+            sample_candidates(c, self.points_per_object, self.dirs_per_point, rng,
+                              getattr(c, "movable", None) if self.use_mask else None)
             for c in self.clouds]
-        self._outcomes: dict[tuple[int, int], bool] = {}
+        self._outcomes: dict[tuple[int, int], tuple[bool, bool]] = {}
 
     @torch.no_grad()
-    def run(self, model: W2EModel) -> dict[str, float]:
-        """Success rate per category (and ``all``) of the highest-affordance action."""
+    def outcomes(self, model: W2EModel) -> list[tuple[bool, bool]]:
+        """(success, valid) of the highest-affordance action on every target, in order."""
         model.eval()
-        by_cat: dict[str, list[bool]] = defaultdict(list)
+        enc = encoder_key(model)
+        feats = FEATURES.get(model, enc, [c.points for c in self.clouds])
+        out = []
         for k, (t, cloud, cand) in enumerate(zip(self.targets, self.clouds, self.candidates,
                                                  strict=True)):
-            feats = model.encode(torch.from_numpy(cloud.points[None]).float().to(model.device))
-            f = feats[0, torch.from_numpy(cand.point_index).to(model.device)]
+            f = feats[k][torch.from_numpy(cand.point_index).to(model.device)]
             a = torch.from_numpy(encode_rotation(cand.up, cand.forward)).to(model.device)
             i = int(torch.argmax(model.aff_head(f, a)))
             if (k, i) not in self._outcomes:
                 res = self.world.execute(t, cand.action(cloud, i, self.primitive))
-                self._outcomes[(k, i)] = bool(res.success)
-            by_cat[str(getattr(t, "category", "all"))].append(self._outcomes[(k, i)])
+                self._outcomes[(k, i)] = (bool(res.success), bool(res.valid))
+            out.append(self._outcomes[(k, i)])
+        return out
+
+    def run(self, model: W2EModel) -> dict[str, float]:
+        """Success rate per category (and ``all`` / ``mean``) of the highest-affordance action."""
+        by_cat: dict[str, list[bool]] = defaultdict(list)
+        for t, (ok, _) in zip(self.targets, self.outcomes(model), strict=True):
+            by_cat[str(getattr(t, "category", "all"))].append(ok)
         out = {c: success_rate(v) for c, v in by_cat.items()}
         out["all"] = success_rate([x for v in by_cat.values() for x in v])
         out["mean"] = float(np.mean([out[c] for c in by_cat])) if by_cat else float("nan")

@@ -1,43 +1,35 @@
-"""The few-shot exploration loop (paper §3.3): one implementation for ``w2e fewshot`` and the
-ROS planner node.
+"""The few-shot exploration loop (paper §3.3): one implementation for ``w2e fewshot``, the
+benchmark and the ROS planner node.
 
-The budget counts interactions per category. Each round: observe the candidate objects,
-sample many (point, direction, orientation) actions on each, let the strategy pick one
-action per category still exploring (one category: one action), execute them, fine-tune
-both heads on what was explored so far plus a replay of ~1 % of the training data; a
-category stops when its mean similarity passes the bar, the run when every category has
-stopped or spent its budget. With all 11 novel categories at once a round costs one model
-update for 11 interactions, which is what keeps the offline benchmark affordable on a CPU.
-The model and the world are protocols: ``W2EExplorer`` and ``SimWorld`` offline, the
-inference and executor nodes on the robot.
+A budget of b means b interactions per explore object (b x objects in all), spent in rounds
+and chosen GLOBALLY over the objects by the strategy, so an unfamiliar category may take more
+than a familiar one (DESIGN §8: the paper's 550 interactions over 11 categories at budget 5).
+Each round: observe the objects, draw candidate actions from the proposal distribution (the
+one the training data came from), score them, drop the objects whose mean similarity passes
+the bar (similarity strategy), execute the round's best actions (at most a few per object),
+then fine-tune on everything explored so far. The model and the world are protocols:
+``W2EExplorer`` and ``SimWorld`` offline, the inference and executor nodes on the robot.
 """
 
 from __future__ import annotations
 
 import copy
 import logging
+import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
-import torch
 
 from sim_bridge.types import Action, TrialResult
-from w2e_ros.core.actions import encode_rotation, sample_forward, sample_up
 from w2e_ros.core.config import ExploreConfig
 from w2e_ros.core.data import InteractionData
+from w2e_ros.core.finetune import W2EExplorer
 from w2e_ros.core.model import W2EModel
+from w2e_ros.core.proposals import DEFAULT_PROPOSAL, ProposalConfig, Proposer
 from w2e_ros.core.strategies import Scored, Strategy
-from w2e_ros.core.train import (
-    BalancedSampler,
-    Batch,
-    RunningAccuracy,
-    make_batch,
-    make_deterministic,
-    training_losses,
-)
 
 log = logging.getLogger("w2e.explore")
 
@@ -54,6 +46,7 @@ class Candidates:
     point_index: np.ndarray  # (C,) int
     up: np.ndarray  # (C, 3)
     forward: np.ndarray  # (C, 3)
+    source: np.ndarray | None = None  # (C,) row in the pool these were taken from (oracle)
 
     def __len__(self) -> int:
         return len(self.point_index)
@@ -65,15 +58,13 @@ class Candidates:
 
 
 def sample_candidates(cloud: CloudLike, num_points: int, dirs_per_point: int,
-                      rng: np.random.Generator, mask: np.ndarray | None = None) -> Candidates:
-    """``num_points`` contact points (optionally within ``mask``), each with
-    ``dirs_per_point`` approach directions facing the surface and random orientations."""
-    pool = np.flatnonzero(mask) if mask is not None and mask.any() else np.arange(
-        len(cloud.points))
-    pts = rng.choice(pool, size=min(num_points, len(pool)), replace=False)
-    pidx = np.repeat(pts, dirs_per_point)  # point-major: (P * D,)
-    up = sample_up(cloud.normals[pidx], rng)
-    return Candidates(pidx.astype(np.int64), up, sample_forward(up, rng))
+                      rng: np.random.Generator, mask: np.ndarray | None = None,
+                      proposal: ProposalConfig = DEFAULT_PROPOSAL) -> Candidates:
+    """``num_points`` contact points x ``dirs_per_point`` actions from the proposal
+    distribution (favouring ``mask`` points when given: the simulator's movable parts)."""
+    p = Proposer(cloud.points, cloud.normals, mask if mask is not None and np.any(mask)
+                 else None, proposal).sample(num_points, dirs_per_point, rng)
+    return Candidates(p.point_index, p.up, p.forward)
 
 
 @dataclass
@@ -146,53 +137,76 @@ def _name(target: Any) -> str:
 def explore(model: ExplorationModel, world: ExplorationWorld, targets: Sequence[Any],
             strategy: Strategy, cfg: ExploreConfig, primitive: str,
             rng: np.random.Generator | None = None,
-            on_step: Callable[[StepRecord], None] | None = None,
-            group_of: Callable[[Any], str] | None = None) -> ExplorationResult:
-    """Explore ``targets`` with ``strategy`` for ``cfg.budget`` rounds (one interaction per
-    group and round; groups are categories, ``group_of`` says how to read a target's) or
-    until every group's mean similarity passes the bar. Snapshots of the model after each of
-    ``cfg.snapshot_budgets`` rounds (an early stop fills the later budgets with the final
-    model), so every budget is evaluated from one run."""
+            on_step: Callable[[StepRecord], None] | None = None) -> ExplorationResult:
+    """Explore ``targets`` with ``strategy``: ``cfg.budget`` x len(targets) interactions in
+    rounds of ``cfg.round_size``, or until every object's mean similarity passes the bar.
+    Snapshots of the model once b x len(targets) interactions are spent, for each b in
+    ``cfg.snapshot_budgets`` (an early stop fills the later budgets with the final model),
+    so every budget is evaluated from one run."""
     rng = rng or np.random.default_rng(cfg.seed)
-    group_of = group_of or (lambda t: str(getattr(t, "category", "all")))
-    groups = list(dict.fromkeys(group_of(t) for t in targets))
-    members = {g: [i for i, t in enumerate(targets) if group_of(t) == g] for g in groups}
-    active = list(groups) if strategy.explores else []
+    n = len(targets)
+    total = cfg.budget * n if strategy.explores else 0
+    round_size = cfg.round_size or max(1, math.ceil(n / 5))
     clouds = [world.observe(t) for t in targets]
+    groups = [str(getattr(t, "category", "all")) for t in targets]
+    mask_of = (lambda c: getattr(c, "movable", None)) if cfg.use_mask else (lambda c: None)
+    labels: list[np.ndarray] | None = None
+    pools: list[Candidates] | None = None
+    if strategy.needs_labels:  # hindsight: a fixed labelled pool per object (not counted)
+        pools = [sample_candidates(c, cfg.oracle_pool, 1, np.random.default_rng(
+            _stable(_name(t))), mask_of(c)) for c, t in zip(clouds, targets, strict=True)]
+        labels = [np.array([world.execute(t, p.action(c, i, primitive)).success
+                            for i in range(len(p))], np.float32)
+                  for c, t, p in zip(clouds, targets, pools, strict=True)]
+    used: list[set[int]] = [set() for _ in targets]
+    active = list(range(n))
     records: list[StepRecord] = []
     means: list[float] = []
     snapshots: dict[int, Any] = {0: model.snapshot()}
     stopped = "budget" if strategy.explores else "none"
-    budget = cfg.budget if strategy.explores else 0
-    for rnd in range(budget + 1):
+    rnd = 0
+    while True:
         t0 = time.perf_counter()
-        cands = [sample_candidates(c, cfg.points_per_object, cfg.dirs_per_point, rng,
-                                   getattr(c, "movable", None) if cfg.movable_only else None)
-                 for c in clouds]
+        if pools is not None:
+            cands = [_without(p, u) for p, u in zip(pools, used, strict=True)]
+        else:
+            cands = [sample_candidates(c, cfg.points_per_object, cfg.dirs_per_point, rng,
+                                       mask_of(c)) for c in clouds]
         scored = model.score(clouds, cands)
-        means.append(float(np.mean(np.concatenate([s.similarity for s in scored]))))
-        if rnd == budget:
+        obj_mean = [float(np.mean(s.similarity)) if len(s.similarity) else 1.0
+                    for s in scored]
+        means.append(float(np.mean(obj_mean)))
+        if len(records) >= total:
             break
-        group_mean = {g: float(np.mean(np.concatenate([scored[i].similarity
-                                                       for i in members[g]])))
-                      for g in active}
         if strategy.stops_at_bar:
-            active = [g for g in active if group_mean[g] <= cfg.sim_bar]
+            active = [i for i in active if obj_mean[i] <= cfg.sim_bar]
             if not active:
                 stopped = "bar"
                 break
+        k = min(round_size, total - len(records))
+        cand_labels = None
+        if labels is not None:
+            cand_labels = [_without_labels(lab, u) for lab, u in zip(labels, used, strict=True)]
+            cand_labels = [cand_labels[i] for i in active]
+        picks = strategy.select([scored[i] for i in active], k, cfg.per_object_per_round, rng,
+                                cand_labels)
+        if not picks:
+            stopped = "exhausted"
+            break
+        rnd += 1
         executed: list[Executed] = []
-        for g in active:
-            k, i = strategy.choose([scored[j] for j in members[g]], rng)
-            obj = members[g][k]
+        for a_obj, i in picks:
+            obj = active[a_obj]
             action = cands[obj].action(clouds[obj], i, primitive)
             result = world.execute(targets[obj], action)
+            if pools is not None:
+                used[obj].add(int(cands[obj].source[i]))
             executed.append(Executed(clouds[obj], cands[obj], i, result))
             records.append(StepRecord(
-                step=len(records) + 1, round=rnd + 1, group=g, target=_name(targets[obj]),
-                point=action.point.tolist(), up=action.up.tolist(),
+                step=len(records) + 1, round=rnd, group=groups[obj],
+                target=_name(targets[obj]), point=action.point.tolist(), up=action.up.tolist(),
                 forward=action.forward.tolist(), affordance=float(scored[obj].affordance[i]),
-                similarity=float(scored[obj].similarity[i]), mean_similarity=group_mean[g],
+                similarity=float(scored[obj].similarity[i]), mean_similarity=obj_mean[obj],
                 valid=bool(result.valid), success=bool(result.success),
                 motion=float(np.max(np.abs(result.motion))) if np.size(result.motion) else 0.0,
                 seconds=0.0))
@@ -200,143 +214,42 @@ def explore(model: ExplorationModel, world: ExplorationWorld, targets: Sequence[
         seconds = (time.perf_counter() - t0) / max(len(executed), 1)
         for rec in records[-len(executed):]:
             rec.losses, rec.seconds = losses, seconds
-            log.info("round %d %s %s: %s aff %.2f sim %.2f (mean sim %.3f) -> %s", rec.round,
-                     strategy.name, rec.group, rec.target, rec.affordance, rec.similarity,
-                     rec.mean_similarity,
-                     "success" if rec.success else ("fail" if rec.valid else "invalid"))
+            log.debug("round %d %s %s: aff %.2f sim %.2f (object mean sim %.3f) -> %s",
+                      rec.round, strategy.name, rec.target, rec.affordance, rec.similarity,
+                      rec.mean_similarity,
+                      "success" if rec.success else ("fail" if rec.valid else "invalid"))
             if on_step:
                 on_step(rec)
-        if rnd + 1 in cfg.snapshot_budgets:
-            snapshots[rnd + 1] = model.snapshot()
-        for e in executed:  # the world decides whether the object changed
-            obj = next(j for j, c in enumerate(clouds) if c is e.cloud)
-            clouds[obj] = world.observe(targets[obj])
+        log.info("round %d %s: %d interactions (%d successful), %d of %d spent, %d objects "
+                 "active, mean similarity %.3f", rnd, strategy.name, len(executed),
+                 sum(e.result.success for e in executed), len(records), total, len(active),
+                 means[-1])
+        for b in cfg.snapshot_budgets:
+            if b not in snapshots and len(records) >= b * n:
+                snapshots[b] = model.snapshot()
+        touched = {id(e.cloud) for e in executed}
+        for j, c in enumerate(clouds):  # the world decides whether the object changed
+            if id(c) in touched:
+                clouds[j] = world.observe(targets[j])
     final = model.snapshot() if records else snapshots[0]
     for b in cfg.snapshot_budgets:
         snapshots.setdefault(b, final)
     return ExplorationResult(strategy.name, records, stopped, means, snapshots)
 
 
-@dataclass
-class Explored:
-    cloud: np.ndarray  # (N, 3)
-    point_index: int
-    action: np.ndarray  # (6,)
-    success: bool
-    update_affordance: bool = True
+def _stable(name: str) -> int:
+    import zlib
+
+    return zlib.crc32(f"oracle/{name}".encode()) & 0x7FFFFFFF
 
 
-class W2EExplorer:
-    """The learned model as an ExplorationModel: scores candidates, fine-tunes on each
-    explored interaction plus replay of the training data (with its training roles)."""
+def _without(pool: Candidates, used: set[int]) -> Candidates:
+    keep = np.array([i for i in range(len(pool)) if i not in used], np.int64)
+    return Candidates(pool.point_index[keep], pool.up[keep], pool.forward[keep], keep)
 
-    def __init__(self, model: W2EModel, cfg: ExploreConfig, replay: InteractionData | None = None,
-                 aff_categories: Sequence[str] = (), sim_categories: Sequence[str] = (),
-                 train_similarity: bool = True, seed: int = 0) -> None:
-        self.model, self.cfg = model, cfg
-        self.device = model.device
-        make_deterministic(seed)
-        self.rng = np.random.default_rng(seed)
-        self.opt = torch.optim.Adam(model.parameters(), lr=cfg.finetune_lr)
-        self.aff_cats, self.sim_cats = tuple(aff_categories), tuple(sim_categories)
-        self.train_similarity = train_similarity
-        self.explored: list[Explored] = []
-        self.acc = RunningAccuracy()
-        self.replay, self.sampler = None, None
-        if replay is not None and replay.num_interactions:
-            n = max(cfg.replay_clouds * cfg.replay_per_cloud,
-                    int(round(cfg.replay_fraction * replay.num_interactions)))
-            rows = np.sort(self.rng.choice(replay.num_interactions,
-                                           size=min(n, replay.num_interactions), replace=False))
-            self.replay = replay.subset(rows)
-            cats = tuple(dict.fromkeys(self.aff_cats + self.sim_cats)) or tuple(
-                np.unique(self.replay.category))
-            self.sampler = BalancedSampler(self.replay, cats, cfg.replay_clouds,
-                                           cfg.replay_per_cloud, self.rng)
 
-    @torch.no_grad()
-    def score(self, clouds: Sequence[CloudLike],
-              candidates: Sequence[Candidates], chunk: int = 8) -> list[Scored]:
-        self.model.eval()
-        out: list[Scored] = []
-        for s in range(0, len(clouds), chunk):
-            pts = np.stack([c.points for c in clouds[s:s + chunk]]).astype(np.float32)
-            feats = self.model.encode(torch.from_numpy(pts).to(self.device))  # (b, N, F)
-            for j, cand in enumerate(candidates[s:s + chunk]):
-                f = feats[j, torch.from_numpy(cand.point_index).to(self.device)]  # (C, F)
-                a = torch.from_numpy(encode_rotation(cand.up, cand.forward)).to(self.device)
-                aff, sim = self.model.heads(f, a)
-                out.append(Scored(torch.sigmoid(aff).cpu().numpy(), sim.cpu().numpy()))
-        return out
-
-    def _explored_batch(self, rows: np.ndarray) -> Batch:
-        chosen = [self.explored[r] for r in rows]
-        clouds = np.stack([e.cloud for e in chosen]).astype(np.float32)
-        n = len(chosen)
-        t = lambda a, dt=torch.float32: torch.as_tensor(np.asarray(a), dtype=dt,  # noqa: E731
-                                                       device=self.device)
-        off = 0 if self.replay is None else self.replay.num_interactions
-        # class-balanced, as the training batches were: explored interactions are mostly
-        # failures, and unweighted they teach the model that nothing on a novel category moves
-        success = np.array([e.success for e in chosen])
-        n_pos = int(success.sum())
-        weight = np.ones(n, np.float32)
-        if 0 < n_pos < n:
-            weight[success] = n / (2.0 * n_pos)
-            weight[~success] = n / (2.0 * (n - n_pos))
-        return Batch(clouds=t(clouds), cloud_of=t(np.arange(n), torch.long),
-                     point_index=t([e.point_index for e in chosen], torch.long),
-                     actions=t(np.stack([e.action for e in chosen])),
-                     success=t([float(e.success) for e in chosen]),
-                     interaction=off + np.asarray(rows),
-                     aff_mask=t([e.update_affordance for e in chosen], torch.bool),
-                     weight=t(weight),
-                     sim_mask=t(np.full(n, self.train_similarity), torch.bool))
-
-    def update(self, executed: Sequence[Executed]) -> dict[str, float]:
-        """Remember the executed interactions, then fine-tune both heads on the explored ones
-        (the newest round always, older ones sampled up to ``cfg.finetune_clouds`` clouds; a
-        round bigger than that is sampled itself) plus a replay batch of the training data."""
-        for e in executed:
-            self.explored.append(Explored(
-                np.asarray(e.cloud.points, dtype=np.float32),
-                int(e.candidates.point_index[e.index]),
-                encode_rotation(e.candidates.up[e.index:e.index + 1],
-                                e.candidates.forward[e.index:e.index + 1])[0],
-                bool(e.result.success), bool(e.update_affordance)))
-        stats: dict[str, float] = {}
-        if not self.explored or self.cfg.finetune_steps <= 0:
-            return stats
-        self.model.train()
-        n, newest = len(self.explored), len(executed)
-        cap = self.cfg.finetune_clouds
-        for _ in range(self.cfg.finetune_steps):
-            rows = np.arange(n - newest, n)
-            if newest > cap:  # a big round (one interaction per object): sample it
-                rows = np.sort(self.rng.choice(rows, size=cap, replace=False))
-            elif n > newest and cap > newest:
-                older = self.rng.choice(n - newest, size=min(n - newest, cap - newest),
-                                        replace=False)
-                rows = np.concatenate([np.sort(older), rows])
-            parts = [self._explored_batch(rows)]
-            if self.sampler is not None:
-                parts.append(make_batch(self.replay, self.sampler.sample_rows(), self.aff_cats,
-                                        self.sim_cats, self.device))
-            loss, stats = training_losses(self.model, Batch.cat(parts), self.acc)
-            self.opt.zero_grad(set_to_none=True)
-            loss.backward()
-            self.opt.step()
-        self.model.eval()
-        return stats
-
-    def snapshot(self) -> dict[str, torch.Tensor]:
-        """A copy of the weights (CPU): load it into a model to evaluate this budget."""
-        return {k: v.detach().cpu().clone() for k, v in self.model.state_dict().items()}
-
-    def model_at(self, snapshot: dict[str, torch.Tensor]) -> W2EModel:
-        m = copy.deepcopy(self.model)
-        m.load_state_dict(snapshot)
-        return m.eval()
+def _without_labels(labels: np.ndarray, used: set[int]) -> np.ndarray:
+    return labels[[i for i in range(len(labels)) if i not in used]]
 
 
 # --- offline few-shot runs (``w2e fewshot`` and the benchmark) ----------------------------
@@ -356,15 +269,14 @@ def fewshot(model: W2EModel, meta: dict, world: ExplorationWorld, categories: Se
             strategy: Strategy, cfg: ExploreConfig, primitive: str,
             replay: InteractionData | None = None, mode: str = "all",
             per_category: int = 10) -> dict[str, tuple[ExplorationResult, W2EExplorer]]:
-    """Few-shot learning on novel ``categories``: all at once (``mode="all"``, one run) or one
-    category at a time (``mode="per-category"``, one run each, every run from ``model``).
+    """Few-shot learning on novel ``categories``: all at once (``mode="all"``, one run, the
+    budget chosen globally over every category's objects) or one category at a time
+    (``mode="per-category"``, one run each, every run from ``model``).
 
     Returns group name -> (result with snapshots, the explorer that holds the adapted model).
     """
     if mode not in ("all", "per-category"):
         raise ValueError(f"unknown mode {mode!r} (all | per-category)")
-    if cfg.budget_per not in ("category", "object"):
-        raise ValueError(f"unknown budget_per {cfg.budget_per!r} (category | object)")
     groups = {"all": list(categories)} if mode == "all" else {c: [c] for c in categories}
     aff, sim = tuple(meta.get("aff_categories", ())), tuple(meta.get("sim_categories", ()))
     initial = {k: v.detach().clone() for k, v in model.state_dict().items()}
@@ -375,10 +287,10 @@ def fewshot(model: W2EModel, meta: dict, world: ExplorationWorld, categories: Se
         explorer = W2EExplorer(m, cfg, replay, aff, sim, train_similarity=bool(sim),
                                seed=cfg.seed)
         targets = explore_targets(cats, per_category)
-        log.info("few-shot %s on %s (%d objects), %s, budget %d per %s", strategy.name, name,
-                 len(targets), primitive, cfg.budget, cfg.budget_per)
+        log.info("few-shot %s on %s (%d objects), %s, budget %d per object (%d in all)",
+                 strategy.name, name, len(targets), primitive, cfg.budget,
+                 cfg.budget * len(targets))
         res = explore(explorer, world, targets, strategy, cfg, primitive,
-                      rng=np.random.default_rng(cfg.seed),
-                      group_of=_name if cfg.budget_per == "object" else None)
+                      rng=np.random.default_rng(cfg.seed))
         out[name] = (res, explorer)
     return out

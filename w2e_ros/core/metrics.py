@@ -7,7 +7,7 @@ which weights small batches wrongly and is not an F-score of anything).
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 
 import numpy as np
 
@@ -50,3 +50,71 @@ def mean_std(values: Iterable[float]) -> tuple[float, float]:
     if not len(v):
         return float("nan"), float("nan")
     return float(v.mean()), float(v.std())
+
+
+def auroc(scores: np.ndarray, labels: np.ndarray) -> float:
+    """Area under the ROC curve (ties count one half); NaN when one class is missing.
+
+    Threshold-free, so it says whether the model ranks successes above failures even where
+    a poorly calibrated 0.5 threshold makes the F-score 0.
+    """
+    s, y = np.asarray(scores, dtype=np.float64), np.asarray(labels, dtype=bool)
+    n_pos, n_neg = int(y.sum()), int((~y).sum())
+    if n_pos == 0 or n_neg == 0:
+        return float("nan")
+    order = np.argsort(s, kind="mergesort")
+    ranks = np.empty(len(s), dtype=np.float64)
+    sorted_s = s[order]
+    # average ranks over ties (1-based)
+    _, first, counts = np.unique(sorted_s, return_index=True, return_counts=True)
+    avg = first + (counts + 1) / 2.0
+    ranks[order] = np.repeat(avg, counts)
+    return float((ranks[y].sum() - n_pos * (n_pos + 1) / 2.0) / (n_pos * n_neg))
+
+
+def average_precision(scores: np.ndarray, labels: np.ndarray) -> float:
+    """Average precision (area under the precision-recall step curve); NaN without positives.
+
+    Its chance level is the positive rate, which the reader must keep in mind (pull: ~5 %).
+    """
+    s, y = np.asarray(scores, dtype=np.float64), np.asarray(labels, dtype=bool)
+    n_pos = int(y.sum())
+    if n_pos == 0:
+        return float("nan")
+    order = np.argsort(-s, kind="mergesort")
+    y = y[order]
+    tp = np.cumsum(y)
+    precision = tp / np.arange(1, len(y) + 1)
+    return float(precision[y].sum() / n_pos)
+
+
+def classification_metrics(probs: np.ndarray, success: np.ndarray,
+                           threshold: float = 0.5) -> dict[str, float]:
+    """F-score (with its counts) at ``threshold``, AUROC and average precision."""
+    out = affordance_fscore_from_probs(probs, success, threshold)
+    out["auroc"] = auroc(probs, success)
+    out["ap"] = average_precision(probs, success)
+    out["pos_rate"] = float(np.mean(success)) if len(success) else float("nan")
+    return out
+
+
+def bootstrap_ci(stat: Callable[[np.ndarray], float], groups: np.ndarray,
+                 n_boot: int = 1000, seed: int = 0, level: float = 0.95
+                 ) -> tuple[float, float, float]:
+    """Statistic and its percentile bootstrap interval, resampling whole groups.
+
+    ``groups`` (K,) labels each row with its resampling unit (a test observation, a seed):
+    rows of one cloud are not independent, so the cloud, not the row, is resampled.
+    ``stat`` receives the (K',) row indices of a resample.
+    """
+    groups = np.asarray(groups)
+    uniq, inv = np.unique(groups, return_inverse=True)
+    members = [np.flatnonzero(inv == g) for g in range(len(uniq))]
+    rng = np.random.default_rng(seed)
+    point = float(stat(np.arange(len(groups))))
+    vals = np.empty(n_boot)
+    for b in range(n_boot):
+        pick = rng.integers(len(members), size=len(members))
+        vals[b] = stat(np.concatenate([members[i] for i in pick]))
+    lo, hi = np.nanpercentile(vals, [50 * (1 - level), 50 * (1 + level)])
+    return point, float(lo), float(hi)

@@ -48,10 +48,14 @@ def stable_seed(*parts: object) -> int:
 class SimWorld:
     """Targets -> SAPIEN ObjectWorlds (cached), observed and executed deterministically."""
 
-    def __init__(self, num_points: int = 2048, cache_size: int = 64) -> None:
+    def __init__(self, num_points: int = 2048, cache_size: int = 64,
+                 memo_size: int = 50_000) -> None:
         self.num_points = num_points
         self._worlds: dict[tuple[str, int], object] = {}
         self._cache_size = cache_size
+        # trials are deterministic: the same (target, action, seed) is simulated once
+        self._memo: dict[tuple, TrialResult] = {}
+        self._memo_size = memo_size
 
     def world(self, category: str, instance: int):  # -> sim_bridge.world.ObjectWorld
         from sim_bridge.objects import make_object
@@ -86,6 +90,14 @@ class SimWorld:
         )
 
     def execute(self, target: Target, action: Action, seed: int = 0) -> TrialResult:
-        """Run one trial from the target's start state in a fresh scene."""
-        world = self.world(target.category, target.instance)
-        return world.run_trial(self.start_state(target), action, seed=seed)
+        """Run one trial from the target's start state in a fresh scene (remembered: the
+        oracle's hindsight labels and the success probe ask for the same trials again)."""
+        key = (target.name, action.primitive, np.asarray(action.point, np.float64).tobytes(),
+               np.asarray(action.up, np.float64).tobytes(),
+               np.asarray(action.forward, np.float64).tobytes(), int(seed))
+        if key not in self._memo:
+            world = self.world(target.category, target.instance)
+            if len(self._memo) >= self._memo_size:
+                self._memo.pop(next(iter(self._memo)))
+            self._memo[key] = world.run_trial(self.start_state(target), action, seed=seed)
+        return self._memo[key]

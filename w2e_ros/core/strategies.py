@@ -1,10 +1,12 @@
-"""Exploration strategies: which sampled action the few-shot loop executes next.
+"""Exploration strategies: which sampled actions the few-shot loop executes next.
 
-Each strategy sees the scored candidates of every object the loop may touch and returns
-(object, candidate). ``similarity`` is Where2Explore's rule (lowest similarity = least
-familiar geometry); ``where2act`` / ``nosim`` explore where the affordance is least certain
-(closest to 0.5), with the Where2Act baseline model or with ours; ``random`` picks uniformly;
-``none`` does not explore (the no-explore lower bound).
+A strategy ranks every candidate action of every object it may touch (lower key = explore
+first) and the loop takes a round's worth of the best ones over all objects, at most a few
+per object. ``similarity`` is Where2Explore's rule (lowest similarity = least familiar
+geometry); ``where2act`` / ``nosim`` explore where the affordance is least certain (closest
+to 0.5), with the Where2Act baseline model or with ours; ``random`` ranks at random;
+``oracle`` uses hindsight labels from the simulator and picks the actions the current model
+gets most wrong (the most any selection rule can win); ``none`` does not explore.
 """
 
 from __future__ import annotations
@@ -25,32 +27,49 @@ class Scored:
 @dataclass(frozen=True)
 class Strategy:
     """A selection rule. ``explores`` False: the loop spends no interaction.
-    ``stops_at_bar``: the loop stops when the mean similarity passes the bar (only meaningful
-    for models whose similarity head was trained)."""
+    ``stops_at_bar``: an object stops being explored when its mean similarity passes the
+    bar (only meaningful for models whose similarity head was trained).
+    ``needs_labels``: the loop must give hindsight outcomes of the candidates (oracle)."""
 
     name: str
     explores: bool = True
     stops_at_bar: bool = False
+    needs_labels: bool = False
 
-    def choose(self, scored: list[Scored], rng: np.random.Generator) -> tuple[int, int]:
-        """(object index, candidate index) of the action to execute next."""
-        if not self.explores:
-            raise RuntimeError(f"strategy {self.name!r} does not explore")
-        if self.name == "random":
-            sizes = np.array([len(s.affordance) for s in scored])
-            obj = int(rng.choice(np.flatnonzero(sizes)))
-            return obj, int(rng.integers(sizes[obj]))
-        keys = [self.key(s) for s in scored]
-        best = [int(np.argmin(k)) if len(k) else -1 for k in keys]
-        vals = np.array([k[b] if b >= 0 else np.inf for k, b in zip(keys, best, strict=True)])
-        obj = int(np.argmin(vals))
-        return obj, best[obj]
-
-    def key(self, s: Scored) -> np.ndarray:
+    def keys(self, s: Scored, rng: np.random.Generator,
+             labels: np.ndarray | None = None) -> np.ndarray:
         """Lower = explore first."""
+        if self.name == "random":
+            return rng.random(len(s.affordance))
         if self.name == "similarity":
             return s.similarity
+        if self.name == "oracle":
+            if labels is None:
+                raise ValueError("the oracle needs hindsight labels of the candidates")
+            return -np.abs(s.affordance - np.asarray(labels, np.float32))
         return np.abs(s.affordance - 0.5)  # where2act / nosim: the least certain action
+
+    def select(self, scored: list[Scored], k: int, per_object: int,
+               rng: np.random.Generator,
+               labels: list[np.ndarray] | None = None) -> list[tuple[int, int]]:
+        """The ``k`` lowest-key (object, candidate) pairs over all objects, at most
+        ``per_object`` from one object, best first."""
+        if not self.explores:
+            raise RuntimeError(f"strategy {self.name!r} does not explore")
+        pool: list[tuple[float, int, int]] = []
+        for o, s in enumerate(scored):
+            if not len(s.affordance):
+                continue
+            key = self.keys(s, rng, None if labels is None else labels[o])
+            for c in np.argsort(key, kind="stable")[:per_object]:
+                pool.append((float(key[c]), o, int(c)))
+        pool.sort(key=lambda t: t[0])
+        return [(o, c) for _, o, c in pool[:k]]
+
+    def choose(self, scored: list[Scored], rng: np.random.Generator,
+               labels: list[np.ndarray] | None = None) -> tuple[int, int]:
+        """(object index, candidate index) of the single best action."""
+        return self.select(scored, 1, 1, rng, labels)[0]
 
 
 STRATEGIES: dict[str, Strategy] = {
@@ -58,6 +77,7 @@ STRATEGIES: dict[str, Strategy] = {
     "where2act": Strategy("where2act"),
     "nosim": Strategy("nosim"),
     "random": Strategy("random"),
+    "oracle": Strategy("oracle", needs_labels=True),
     "none": Strategy("none", explores=False),
 }
 

@@ -66,35 +66,120 @@ def heatmap_figure(points: np.ndarray, maps: dict[str, np.ndarray], path: str | 
 
 
 def metric_curves(summary: dict, methods: Sequence[str], budgets: Sequence[int],
-                  path: str | Path) -> Path:
-    """Metric (mean +- std over combinations and seeds) vs budget, one panel per
-    (metric, primitive). ``summary[(primitive, method, budget, metric)] = (mean, std)``."""
+                  path: str | Path,
+                  metrics: Sequence[tuple[str, str]] = (("fscore", "F-score (%)"),
+                                                        ("auroc", "AUROC (%)"),
+                                                        ("success", "sample success (%)"))
+                  ) -> Path:
+    """Metric vs budget with 95 % bootstrap intervals, one panel per (metric, primitive).
+    ``summary[(primitive, method, budget, metric)] = (mean, ci_low, ci_high)``; budget 0 is
+    the model before exploring."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     prims = sorted({k[0] for k in summary}, key=lambda p: ("push", "pull").index(p)
                    if p in ("push", "pull") else 9)
-    metrics = [("fscore", "F-score (%)"), ("success", "sample success (%)")]
-    fig, axes = plt.subplots(len(metrics), len(prims), figsize=(4.5 * len(prims), 7),
+    metrics = [m for m in metrics if any(k[3] == m[0] for k in summary)]
+    fig, axes = plt.subplots(len(metrics), len(prims), figsize=(4.8 * len(prims),
+                                                                3.3 * len(metrics)),
                              squeeze=False)
+    xs = [0, *budgets]
     for r, (metric, label) in enumerate(metrics):
         for c, prim in enumerate(prims):
             ax = axes[r, c]
             for m in methods:
-                pts = [(b, *summary[(prim, m, b, metric)]) for b in budgets
+                pts = [(b, *summary[(prim, m, b, metric)]) for b in xs
                        if (prim, m, b, metric) in summary]
                 if not pts:
                     continue
-                b, mu, sd = (np.array(x, dtype=float) for x in zip(*pts, strict=True))
-                ax.errorbar(b, 100 * mu, yerr=100 * sd, marker="o", capsize=3, label=m,
-                            linestyle="--" if m in ("none", "fulldata") else "-")
+                b, mu, lo, hi = (np.array(x, dtype=float) for x in zip(*pts, strict=True))
+                line, = ax.plot(b, 100 * mu, marker="o", label=m,
+                                linestyle="--" if m in ("none", "fulldata") else "-")
+                ax.fill_between(b, 100 * lo, 100 * hi, color=line.get_color(), alpha=0.12)
             ax.set_title(f"{label}: {prim}", fontsize=10)
-            ax.set_xlabel("interaction budget")
-            ax.set_xticks(list(budgets))
+            ax.set_xlabel("interaction budget (per explore object)")
+            ax.set_xticks(xs)
             ax.grid(alpha=0.3)
     labelled = [ax for ax in axes.flat if ax.get_legend_handles_labels()[0]]
-    if labelled:  # e.g. a run without test interactions has no F-score panel content
+    if labelled:
         labelled[0].legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def training_curves(metrics_jsonl: str | Path, path: str | Path, title: str = "") -> Path:
+    """Training loss and held-out validation metrics over the steps of one ``w2e train`` run.
+
+    Panels: losses; affordance AUROC / AP / F-score per group of held-out categories (all
+    trials solid, valid trials dashed); similarity-for-correctness AUROC.
+    """
+    import json
+
+    recs = [json.loads(line) for line in Path(metrics_jsonl).read_text().splitlines() if line]
+    val = [r for r in recs if "val_score" in r]
+    fig, axes = plt.subplots(1, 4, figsize=(20, 4.2))
+    steps = [r["step"] for r in recs]
+    for k in ("loss_aff", "loss_sim"):
+        axes[0].plot(steps, [r.get(k, np.nan) for r in recs], label=k, lw=0.8)
+    axes[0].set_title("training loss")
+    groups = sorted({k.split("_")[1] for r in val for k in r
+                     if k.startswith("val_") and k.endswith("_auroc") and "simcorr" not in k
+                     and k.split("_")[1] not in ("score",)})
+    colours = dict(zip(["caff", "csim", "novel"], ["C0", "C1", "C2"], strict=True))
+    vs = [r["step"] for r in val]
+    for ax, metric in zip(axes[1:3], ("auroc", "fscore"), strict=True):
+        for g in groups:
+            for tag, ls in (("", "-"), ("valid_", "--")):
+                ys = [r.get(f"val_{g}_{tag}{metric}", np.nan) for r in val]
+                ax.plot(vs, ys, ls, color=colours.get(g, "k"), marker=".",
+                        label=f"{g} {'valid only' if tag else 'all trials'}")
+        ax.set_title(f"held-out affordance {metric}")
+        ax.grid(alpha=0.3)
+    for g in groups:
+        axes[3].plot(vs, [r.get(f"val_{g}_simcorr_auroc", np.nan) for r in val], marker=".",
+                     color=colours.get(g, "k"), label=g)
+    axes[3].axhline(0.5, color="grey", lw=0.5)
+    axes[3].set_title("similarity AUROC for 'prediction correct'")
+    for ax in axes:
+        ax.set_xlabel("step")
+        if ax.lines:
+            ax.legend(fontsize=7)
+    if val:
+        best = max(val, key=lambda r: r["val_score"])
+        for ax in axes[1:]:
+            ax.axvline(best["step"], color="k", lw=0.6, ls=":")
+    fig.suptitle(title)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def learnability_figure(summary: dict, path: str | Path) -> Path:
+    """Test F-score / AUROC / AP over the number of fine-tuning interactions, one line per
+    selection (mean ± std over seeds), reference models as horizontal lines."""
+    metrics = (("fscore", "F-score"), ("auroc", "AUROC"), ("ap", "average precision"))
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4))
+    for ax, (m, title) in zip(axes, metrics, strict=True):
+        for sel, curve in summary["curves"].items():
+            ns = sorted(curve, key=int)
+            x = [max(int(n), 1) for n in ns]
+            y = np.array([curve[n][m][0] for n in ns])
+            e = np.array([curve[n][m][1] for n in ns])
+            ax.errorbar(x, y, yerr=e, marker="o", capsize=3, label=sel)
+        for k, (name, ref) in enumerate(summary.get("references", {}).items()):
+            ax.axhline(ref[m], color=f"C{k + 3}", ls="--", lw=1, label=name)
+        ax.set_xscale("symlog", linthresh=50)
+        ax.set_xlabel("fine-tuning interactions N (0 = base model)")
+        ax.set_title(f"{summary['primitive']}: novel-category {title}")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
     plt.close(fig)
     return path

@@ -36,7 +36,8 @@ from w2e_msgs.srv import PredictMaps, UpdateModel
 from sim_bridge.types import PRIMITIVES, Action
 from w2e_ros.core.actions import BASE_PRIMITIVES, sample_forward, sample_up
 from w2e_ros.core.config import ExploreConfig
-from w2e_ros.core.explore import Candidates, Executed, W2EExplorer
+from w2e_ros.core.explore import Candidates, Executed
+from w2e_ros.core.finetune import W2EExplorer
 from w2e_ros.core.model import W2EModel, default_device, load_model, save_model
 from w2e_ros.core.pointcloud import check_cloud, fps_indices
 from w2e_ros.paths import default_checkpoint
@@ -54,6 +55,8 @@ from w2e_ros.ros.pointcloud import (
 )
 from w2e_ros.ros.qos import LATCHED_QOS
 from w2e_ros.ros.spin import run_node
+
+_FT = ExploreConfig()  # the core's fine-tuning defaults, so node and CLI agree
 
 
 @dataclass
@@ -76,10 +79,15 @@ class InferenceSettings:
                                 max=256)
     num_best: int = param(8, "best / least familiar actions returned per object", min=1,
                           max=1000)
-    finetune_steps: int = param(8, "gradient steps per update_model call", min=1, max=1000)
-    finetune_lr: float = param(1e-4, "Adam learning rate of the fine-tuning", min=0.0)
-    replay_fraction: float = param(0.01, "share of the training interactions replayed",
-                                   min=0.0, max=1.0)
+    finetune: str = param(_FT.finetune, "heads: fine-tune the heads on cached features "
+                          "(encoder frozen) | all: every weight")
+    finetune_steps: int = param(_FT.finetune_steps, "most gradient steps per update_model "
+                                "call (stops when the explored-set fit levels off)", min=1,
+                                max=10000)
+    finetune_lr: float = param(_FT.finetune_lr, "Adam learning rate of the fine-tuning",
+                               min=0.0)
+    replay_fraction: float = param(_FT.replay_fraction, "share of the training interactions "
+                                   "replayed (distinct ones)", min=0.0, max=1.0)
     threads: int = param(2, "torch CPU threads", min=1, max=256)
     publish_maps: bool = param(True, "publish affordance_map / similarity_map clouds")
     seed: int = param(0, "seed of the node's direction sampling and replay")
@@ -181,14 +189,15 @@ class InferenceNode(Node):
         if s.replay_data:
             replay = load_training_data(Path(s.replay_data).expanduser(), method, combo,
                                         primitive)
-        cfg = ExploreConfig(finetune_steps=s.finetune_steps, finetune_lr=s.finetune_lr,
-                            replay_fraction=s.replay_fraction, seed=s.seed)
+        cfg = ExploreConfig(finetune=s.finetune, finetune_steps=s.finetune_steps,
+                            finetune_lr=s.finetune_lr, replay_fraction=s.replay_fraction,
+                            seed=s.seed)
         explorer = W2EExplorer(model, cfg, replay=replay, aff_categories=aff_cats,
                              sim_categories=sim_cats, train_similarity=True, seed=s.seed)
         self.load_errors.pop(primitive, None)
         self.get_logger().info(
             f"{primitive}: {path} ({method}/{combo}, replay "
-            f"{0 if explorer.replay is None else explorer.replay.num_interactions} interactions)")
+            f"{len(explorer.replay_rows)} distinct interactions)")
         return _Served(primitive, path, model, meta, explorer)
 
     def _served_for(self, primitive: str) -> _Served:

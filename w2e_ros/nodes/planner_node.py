@@ -340,8 +340,8 @@ class PlannerNode(Node):
                 raise ValueError("instances given without a category")
             cats = load_categories()
             cats.check_category(category)
-            lo = min(a for a, _ in cats.splits.values())
-            hi = max(b for _, b in cats.splits.values())
+            ranges = [r for split in cats.splits.values() for r in split]
+            lo, hi = min(a for a, _ in ranges), max(b for _, b in ranges)
             bad = [int(i) for i in instances if not lo <= int(i) < hi]
             if bad:
                 raise ValueError(f"instances {bad} out of range [{lo}, {hi})")

@@ -1,0 +1,149 @@
+"""Few-shot fine-tuning: fits what was explored, in both modes, with a distinct replay."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from synthetic import synthetic_data
+
+from w2e_ros.core.config import ExploreConfig, ModelConfig
+from w2e_ros.core.finetune import Rows, W2EExplorer, balanced_weights
+from w2e_ros.core.model import W2EModel
+from w2e_ros.core.predict import FeatureCache
+
+torch.set_num_threads(2)
+SMALL = ModelConfig(num_points=256, sa_npoint=(64, 16, 8, 4))
+SIM = ("cabinet", "faucet", "window")
+
+
+@pytest.fixture(scope="module")
+def novel():
+    return synthetic_data(categories=("kettle", "bucket"), obs_per_cat=2, per_obs=16, seed=5,
+                          instance_start=30)
+
+
+@pytest.fixture(scope="module")
+def replay():
+    return synthetic_data(obs_per_cat=4, per_obs=25, seed=1)
+
+
+def _explorer(mode: str, replay=None, seed: int = 0, **kw) -> W2EExplorer:
+    torch.manual_seed(seed)
+    cfg = ExploreConfig(**{"finetune": mode, "finetune_steps": 60, "finetune_min_steps": 60,
+                           "finetune_lr": 3e-3, **kw})
+    return W2EExplorer(W2EModel(SMALL), cfg, replay, ("cabinet",), SIM, seed=seed,
+                       features=FeatureCache())
+
+
+def test_balanced_weights_give_both_classes_equal_weight():
+    y = np.array([True, False, False, False])
+    w = balanced_weights(y)
+    assert w[y].sum() == pytest.approx(w[~y].sum()) and w.mean() == pytest.approx(1.0)
+    np.testing.assert_array_equal(balanced_weights(np.zeros(3, bool)), np.ones(3))
+
+
+def test_flipped_copies_reverse_the_approach_and_fail():
+    rows = Rows(np.array([0, 1]), np.array([3, 4]),
+                np.arange(12, dtype=np.float32).reshape(2, 6), np.array([True, False]),
+                np.array([True, True]), np.array([True, False]), np.array([7, 8]),
+                np.array([-1, -1]))
+    both = rows.with_flips()
+    assert len(both) == 4
+    np.testing.assert_array_equal(both.action[2:, :3], -rows.action[:, :3])  # up reversed
+    np.testing.assert_array_equal(both.action[2:, 3:], rows.action[:, 3:])  # forward kept
+    np.testing.assert_array_equal(both.success, [True, False, False, False])
+    np.testing.assert_array_equal(both.key[2:], rows.key)  # one counter per interaction
+
+
+@pytest.mark.parametrize("mode", ["heads", "all"])
+def test_fit_learns_the_explored_set(novel, mode):
+    exp = _explorer(mode)
+    exp.add_data(novel)
+    assert exp.num_explored == novel.num_interactions
+    before = exp.explored_fit()
+    enc = {k: v.clone() for k, v in exp.model.encoder.state_dict().items()}
+    out = exp.fit()
+    after = exp.explored_fit()
+    assert out["fit_steps"] == 60 and after["explored"] == novel.num_interactions
+    assert after["fit_loss"] < 0.7 * before["fit_loss"]
+    assert after["fit_auroc"] > max(before["fit_auroc"], 0.85)
+    assert after["fit_acc"] > before["fit_acc"]
+    same = all(torch.equal(enc[k], v) for k, v in exp.model.encoder.state_dict().items())
+    assert same == (mode == "heads")  # heads mode never changes the encoder
+
+
+def test_fit_stops_when_the_explored_loss_levels_off(novel):
+    # lr 0: the loss never improves after the first check (step 10), so the fit stops
+    # after fit_patience more checks instead of running its 2000 steps
+    exp = _explorer("heads", finetune_steps=2000, finetune_min_steps=10, fit_patience=2,
+                    finetune_lr=0.0)
+    exp.add_data(novel)
+    out = exp.fit()
+    assert out["fit_steps"] == 30
+    assert exp.fit_log[-1] is out
+
+
+def test_replay_rows_are_distinct_training_interactions_with_their_roles(replay):
+    from w2e_ros.core.actions import encode_rotation
+
+    exp = _explorer("heads", replay, replay_fraction=0.2)
+    r = exp.replay_rows
+    assert len(r) == round(0.2 * replay.num_interactions)
+    ident = list(zip(r.cloud.tolist(), r.point.tolist(), map(bytes, r.action), strict=True))
+    assert len(set(ident)) == len(r)  # no interaction twice
+    # each one is a stored training interaction, with the role it had in training: only
+    # C_aff (cabinet) rows train the affordance head, all train the similarity head
+    ids = np.array([exp._cloud_id(p) for p in replay.points])
+    stored = {(int(ids[o]), int(p), bytes(a)): str(replay.category[o]) for o, p, a in zip(
+        replay.obs_index, replay.point_index, encode_rotation(replay.up, replay.forward),
+        strict=True)}
+    assert all(k in stored for k in ident)
+    np.testing.assert_array_equal(r.aff, [stored[k] == "cabinet" for k in ident])
+    assert r.sim.all() and (r.fidx >= 0).all()
+    np.testing.assert_array_equal(r.key, np.arange(len(r)))  # own running-accuracy counters
+
+
+def test_update_adds_executed_interactions_and_the_replay_keeps_training_behaviour(novel,
+                                                                                  replay):
+    from sim_bridge.types import TrialResult
+    from w2e_ros.core.explore import Candidates, Executed
+
+    exp = _explorer("heads", replay, replay_fraction=0.1, finetune_steps=20,
+                    finetune_min_steps=20)
+    rows = np.arange(6)
+    o = novel.obs_index[rows]
+    cloud = type("C", (), {"points": novel.points[0], "normals": novel.normals[0]})()
+    cands = Candidates(novel.point_index[rows].astype(np.int64), novel.up[rows],
+                       novel.forward[rows])
+    assert (o == 0).all()
+    executed = [Executed(cloud, cands, i, TrialResult(True, bool(novel.success[i]),
+                                                      np.zeros(1), -1, ""),
+                         update_affordance=i != 5)
+                for i in range(6)]
+    before = [v.clone() for v in exp.model.aff_head.parameters()]
+    out = exp.update(executed)
+    assert exp.num_explored == 6 and out["fit_steps"] == 20
+    np.testing.assert_array_equal(exp.explored.aff, [True] * 5 + [False])
+    np.testing.assert_array_equal(exp.explored.success, novel.success[:6])
+    assert any(not torch.equal(a, b) for a, b in zip(before, exp.model.aff_head.parameters(),
+                                                     strict=True))
+    # scoring the explored actions reads the updated model
+    s = exp.score([cloud], [cands])[0]
+    assert s.affordance.shape == (6,) and ((s.similarity >= 0) & (s.similarity <= 1)).all()
+
+
+def test_snapshots_are_copies_that_rebuild_the_model(novel):
+    exp = _explorer("heads", finetune_steps=10, finetune_min_steps=10)
+    snap = exp.snapshot()
+    exp.add_data(novel)
+    exp.fit()
+    m0 = exp.model_at(snap)
+    w = "aff_head.out.bias"
+    assert torch.equal(m0.state_dict()[w], snap[w])
+    assert not torch.equal(exp.model.state_dict()[w], snap[w])
+
+
+def test_unknown_finetune_mode_is_refused():
+    with pytest.raises(ValueError, match="finetune"):
+        W2EExplorer(W2EModel(SMALL), ExploreConfig(finetune="encoder"))

@@ -1,0 +1,178 @@
+"""``w2e learnability``: can the model learn a novel category from N interactions at all?
+
+Before asking which exploration rule is best, this fine-tunes the trained model (with the
+few-shot fine-tuning of ``finetune.py``) on N interactions drawn from a collection on the
+EXPLORE instances of the novel categories, and scores the result on the held-out TEST
+interactions: F-score, AUROC, average precision. ``selection="random"`` draws the N
+uniformly; ``selection="oracle"`` takes the N the base model gets most wrong (hindsight
+labels), the most a selection rule could gain from the same pool. If the random curve does
+not rise with N, no exploration strategy can help and training must be fixed first.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import logging
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from w2e_ros.core.categories import load_categories
+from w2e_ros.core.config import ExploreConfig
+from w2e_ros.core.data import InteractionData
+from w2e_ros.core.evaluate import evaluation_instances
+from w2e_ros.core.finetune import W2EExplorer
+from w2e_ros.core.metrics import auroc, classification_metrics
+from w2e_ros.core.model import load_model
+from w2e_ros.core.predict import predict_interactions
+
+log = logging.getLogger("w2e.learnability")
+
+
+@dataclass
+class LearnabilityConfig:
+    model: str  # checkpoint of the base model
+    pool_data: str  # collection on explore-split instances of the novel categories
+    test_data: str  # collection on test-split instances (validate: explore instances 35-39)
+    replay_data: str | None = None
+    out: str = "results/learnability"
+    sizes: tuple[int, ...] = (0, 55, 110, 275, 550, 1100, 2200)
+    seeds: tuple[int, ...] = (0, 1, 2)
+    selections: tuple[str, ...] = ("random", "oracle")
+    explore_objects: int = 10  # explore instances per category the pool may use
+    validate: bool = False  # pool: first 5 explore instances; judged on the other 5
+    categories: tuple[str, ...] | None = None
+    references: tuple[str, ...] = ()  # other checkpoints drawn as lines (e.g. fulldata)
+    explore: ExploreConfig = field(default_factory=ExploreConfig)
+
+
+def _metrics(aff: np.ndarray, sim: np.ndarray, data: InteractionData) -> dict[str, float]:
+    y, valid = data.success, data.valid
+    out = {k: v for k, v in classification_metrics(aff, y).items()
+           if k in ("fscore", "auroc", "ap", "precision", "recall")}
+    vm = classification_metrics(aff[valid], y[valid])
+    out.update(valid_fscore=vm["fscore"], valid_auroc=vm["auroc"], valid_ap=vm["ap"])
+    out["simcorr_auroc"] = auroc(sim, (aff > 0.5) == y)
+    return out
+
+
+def run_learnability(cfg: LearnabilityConfig) -> dict:
+    """Every (selection, seed, N): fine-tune a copy of the model on N pool interactions and
+    evaluate it; writes rows.jsonl, learnability.json, learnability.md and .png to ``out``."""
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    model, meta = load_model(cfg.model)
+    prim = meta.get("primitive", "push")
+    cats_cfg = load_categories()
+    novel = list(cfg.categories or cats_cfg.novel(meta.get("combo")))
+    n_pool_obj = 5 if cfg.validate else cfg.explore_objects
+    pool_all = InteractionData.load(cfg.pool_data)
+    pool = InteractionData.concat([pool_all.select(
+        primitive=prim, categories=[c],
+        instances=cats_cfg.instances(c, "explore")[:n_pool_obj]) for c in novel])
+    test_all = InteractionData.load(cfg.test_data)
+    test = InteractionData.concat([test_all.select(
+        primitive=prim, categories=[c],
+        instances=evaluation_instances(c, cfg.validate, n_pool_obj)) for c in novel])
+    if not pool.num_interactions or not test.num_interactions:
+        raise ValueError(f"no {prim} interactions of {', '.join(novel)} in the pool "
+                         f"({cfg.pool_data}) or the test data ({cfg.test_data})")
+    replay = None
+    if cfg.replay_data:
+        train_cats = list(dict.fromkeys(meta.get("aff_categories", []) +
+                                        meta.get("sim_categories", [])))
+        replay = InteractionData.load(cfg.replay_data).select(
+            primitive=prim, categories=train_cats or None,
+            instances=cats_cfg.instances(novel[0], "train"))
+    base_aff, base_sim = predict_interactions(model, test)
+    pool_aff, _ = predict_interactions(model, pool)
+    wrongness = np.abs(pool_aff - pool.success.astype(np.float32))
+    log.info("%s: pool %d interactions (%.1f%% positive) on %d clouds, test %d (%.1f%% "
+             "positive)", prim, pool.num_interactions, 100 * pool.positive_rate(),
+             pool.num_observations, test.num_interactions, 100 * test.positive_rate())
+    refs = {}
+    for r in cfg.references:
+        rm, rmeta = load_model(r)
+        ra, rs = predict_interactions(rm, test)
+        refs[str(rmeta.get("method", Path(r).parent.name))] = _metrics(ra, rs, test)
+    rows: list[dict] = []
+    rows_f = (out / "rows.jsonl").open("w")
+    t_start = time.perf_counter()
+    jobs = [(sel, seed, n) for sel in cfg.selections for seed in cfg.seeds
+            for n in cfg.sizes]
+    initial = {k: v.detach().clone() for k, v in model.state_dict().items()}
+    for j, (sel, seed, n) in enumerate(jobs):
+        t0 = time.perf_counter()
+        n_eff = min(n, pool.num_interactions)
+        if n_eff == 0:
+            aff, sim, fit = base_aff, base_sim, {}
+        else:
+            rng = np.random.default_rng(seed)
+            if sel == "random":
+                rows_sel = rng.choice(pool.num_interactions, size=n_eff, replace=False)
+            elif sel == "oracle":  # most wrong first, ties broken at random
+                jitter = rng.random(pool.num_interactions) * 1e-6
+                rows_sel = np.argsort(-(wrongness + jitter))[:n_eff]
+            else:
+                raise ValueError(f"unknown selection {sel!r} (random | oracle)")
+            m = copy.deepcopy(model)
+            m.load_state_dict(initial)
+            ecfg = ExploreConfig(**{**asdict(cfg.explore), "seed": seed})
+            explorer = W2EExplorer(m, ecfg, replay, meta.get("aff_categories", ()),
+                                   meta.get("sim_categories", ()),
+                                   train_similarity=bool(meta.get("sim_categories")),
+                                   seed=seed)
+            explorer.add_data(pool, np.sort(rows_sel))
+            fit = explorer.fit()
+            aff, sim = predict_interactions(m, test)
+        row = {"primitive": prim, "selection": sel, "seed": seed, "n": n_eff,
+               **_metrics(aff, sim, test),
+               **{k: fit[k] for k in ("fit_acc", "fit_auroc", "fit_steps") if k in fit},
+               "seconds": time.perf_counter() - t0}
+        rows.append(row)
+        rows_f.write(json.dumps(row) + "\n")
+        rows_f.flush()
+        done = j + 1
+        eta = (time.perf_counter() - t_start) / done * (len(jobs) - done)
+        log.info("[%d/%d] %s %s seed %d N=%d: F %.3f AUROC %.3f AP %.3f (fit acc %.2f) "
+                 "%.1f s, eta %.0f s", done, len(jobs), prim, sel, seed, n_eff, row["fscore"],
+                 row["auroc"], row["ap"], fit.get("fit_acc", float("nan")), row["seconds"],
+                 eta)
+    rows_f.close()
+    summary = _summarize(rows, refs, cfg, prim)
+    log.info("learnability done in %.0f s: %s", time.perf_counter() - t_start, out)
+    return summary
+
+
+def _summarize(rows: list[dict], refs: dict, cfg: LearnabilityConfig, prim: str) -> dict:
+    from w2e_ros.core.viz import learnability_figure
+
+    out = Path(cfg.out)
+    metrics = ("fscore", "auroc", "ap", "valid_auroc", "simcorr_auroc")
+    summary: dict = {"primitive": prim, "references": refs, "curves": {}}
+    lines = [f"# Learnability ({prim})", "",
+             f"Fine-tuned on N pool interactions ({cfg.explore.finetune} fine-tuning), judged "
+             f"on {'held-out explore (validation)' if cfg.validate else 'test'} instances of "
+             f"the novel categories; mean ± std over seeds {list(cfg.seeds)}. Values in %.", "",
+             "| selection | N | " + " | ".join(metrics) + " |",
+             "|---" * (len(metrics) + 2) + "|"]
+    for sel in cfg.selections:
+        curve = {}
+        for n in sorted({r["n"] for r in rows if r["selection"] == sel}):
+            rs = [r for r in rows if r["selection"] == sel and r["n"] == n]
+            curve[n] = {m: (float(np.nanmean([r[m] for r in rs])),
+                            float(np.nanstd([r[m] for r in rs]))) for m in metrics}
+            lines.append(f"| {sel} | {n} | " + " | ".join(
+                f"{100 * curve[n][m][0]:.1f} ± {100 * curve[n][m][1]:.1f}" for m in metrics)
+                + " |")
+        summary["curves"][sel] = {str(k): v for k, v in curve.items()}
+    for name, v in refs.items():
+        lines.append(f"| {name} (reference) | - | " + " | ".join(
+            f"{100 * v[m]:.1f}" for m in metrics) + " |")
+    (out / "learnability.md").write_text("\n".join(lines) + "\n")
+    (out / "learnability.json").write_text(json.dumps(summary, indent=1))
+    learnability_figure(summary, out / f"learnability_{prim}.png")
+    return summary
