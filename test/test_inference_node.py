@@ -243,6 +243,30 @@ def test_update_changes_the_model_and_saves_a_checkpoint(graph, checkpoints):
     np.testing.assert_allclose(a0, a2, atol=1e-6)
 
 
+def test_record_only_remembers_without_fitting_and_the_next_update_fits_on_both(graph):
+    """A round spans several clouds: the planner records all but the last interaction and the
+    last update fits once on everything explored (the model must not change before)."""
+    assert graph.call(graph.reset, Trigger.Request()).success
+    msg = cloud_msg(seed=7)
+    before = graph.call(graph.predict, predict_request([msg], num_best=2))
+    acts = list(before.maps[0].explore_actions[:2])
+    rec = graph.call(graph.update, UpdateModel.Request(
+        cloud=msg, interactions=[acts[0]], outcomes=[_outcome(True)], category="door",
+        update_affordance=True, record_only=True))
+    assert rec.success, rec.message
+    same = graph.call(graph.predict, predict_request([msg], num_best=2))
+    s0 = cloud_to_arrays(before.maps[0].cloud, fields=("similarity",)).fields["similarity"]
+    s1 = cloud_to_arrays(same.maps[0].cloud, fields=("similarity",)).fields["similarity"]
+    np.testing.assert_allclose(s0, s1, atol=1e-6)  # recorded, not fitted
+    fit = graph.call(graph.update, UpdateModel.Request(
+        cloud=msg, interactions=[acts[1]], outcomes=[_outcome(False)], category="door",
+        update_affordance=True, save_checkpoint=True))
+    assert fit.success and fit.loss > 0
+    _, meta = load_model(fit.checkpoint_path, "cpu")
+    assert meta["explored"] == 2  # the recorded interaction is in the explored set
+    assert graph.call(graph.reset, Trigger.Request()).success
+
+
 def test_bad_updates_are_refused(graph):
     msg = cloud_msg(seed=8)
     act = graph.call(graph.predict, predict_request([msg])).maps[0].best_actions[0]

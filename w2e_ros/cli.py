@@ -143,11 +143,11 @@ def _add_explore_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--points", type=int, default=256, help="candidate points per object")
     p.add_argument("--dirs", type=int, default=8, help="candidate actions per point")
     p.add_argument("--round-size", type=int, default=0,
-                   help="interactions per round between model updates (0: objects / 5)")
+                   help="interactions per round between model updates (0: objects / 2)")
     p.add_argument("--finetune", default="heads", choices=["heads", "all"],
                    help="fine-tune the heads on cached features (encoder frozen) or every "
                         "weight")
-    p.add_argument("--finetune-steps", type=int, default=300,
+    p.add_argument("--finetune-steps", type=int, default=1000,
                    help="most gradient steps per update (stops when the explored-set fit "
                         "levels off)")
     p.add_argument("--finetune-lr", type=float, default=1e-3, help="fine-tuning learning rate")

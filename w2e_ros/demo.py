@@ -5,7 +5,7 @@ executor, planner), picks a category that the default combination (cfw) never tr
 and through the Python client:
 
 1. ``manipulate`` unseen TEST instances -> success rate before exploring;
-2. ``explore`` a few EXPLORE instances of the category with a budget of 5 interactions;
+2. ``explore`` the 10 EXPLORE instances of the category, 5 interactions per instance;
 3. ``manipulate`` the same TEST instances again (same start states) -> success rate after;
 
 and writes affordance / similarity heatmaps of one test instance, before and after, as PNGs.
@@ -28,14 +28,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--category", default="door", choices=cats.novel(),
                    help="novel category of the default combination (default door)")
     p.add_argument("--primitive", default="push", choices=["push", "pull"])
-    p.add_argument("--budget", type=int, default=5, help="exploration interactions")
-    p.add_argument("--bar", type=float, default=1.0,
-                   help="similarity bar that ends exploration early; the default 1.0 spends "
-                        "the whole budget (the shipped model already rates most novel "
-                        "geometry above the paper's 0.9, which would end the demo at once)")
-    p.add_argument("--explore-instances", type=int, default=5,
+    p.add_argument("--budget", type=int, default=5,
+                   help="exploration interactions per explore instance (the paper's budget)")
+    p.add_argument("--bar", type=float, default=0.9,
+                   help="mean similarity at which an object is no longer explored")
+    p.add_argument("--explore-instances", type=int, default=10,
                    help="EXPLORE-split instances in the scene while exploring")
-    p.add_argument("--test-instances", type=int, default=5,
+    p.add_argument("--test-instances", type=int, default=10,
                    help="unseen TEST-split instances manipulated before and after")
     p.add_argument("--checkpoint", default=None,
                    help="model of the primitive (default: shipped checkpoints/w2e_cfw_*.pt)")

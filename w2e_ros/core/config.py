@@ -93,7 +93,7 @@ class ExploreConfig:
     # the objects by the strategy (an unfamiliar category may take more than a familiar
     # one); an object whose mean similarity passes the bar is not explored further
     budget: int = 5
-    round_size: int = 0  # interactions per round, between model updates (0: objects / 5)
+    round_size: int = 0  # interactions per round, between model updates (0: objects / 2)
     per_object_per_round: int = 2  # at most this many of a round's interactions per object
     sim_bar: float = 0.9  # per object: stop exploring it when its mean similarity exceeds it
     points_per_object: int = 256  # candidate contact points per object and round
@@ -103,11 +103,11 @@ class ExploreConfig:
     # fine-tuning after each round: on ALL explored interactions (+ flipped negatives,
     # class-balanced) and a replay of the training data, until the fit levels off
     finetune: str = "heads"  # heads: encoder frozen, features cached | all: every weight
-    finetune_steps: int = 300  # most Adam steps per update
-    finetune_min_steps: int = 30
+    finetune_steps: int = 1000  # most Adam steps per update
+    finetune_min_steps: int = 100
     finetune_batch: int = 256  # explored rows per step (heads); clouds per step = /16 (all)
     finetune_lr: float = 1e-3
-    fit_patience: int = 5  # checks (every 10 steps) without a 1 % better explored-set loss
+    fit_patience: int = 10  # checks (every 20 steps) without a 0.5 % better explored-set loss
     replay_fraction: float = 0.01  # distinct training interactions replayed
     replay_weight: float = 0.5  # weight of the replay loss next to the explored loss
     snapshot_budgets: tuple[int, ...] = field(default=(1, 2, 5))

@@ -146,7 +146,7 @@ def explore(model: ExplorationModel, world: ExplorationWorld, targets: Sequence[
     rng = rng or np.random.default_rng(cfg.seed)
     n = len(targets)
     total = cfg.budget * n if strategy.explores else 0
-    round_size = cfg.round_size or max(1, math.ceil(n / 5))
+    round_size = cfg.round_size or max(1, math.ceil(n / 2))
     clouds = [world.observe(t) for t in targets]
     groups = [str(getattr(t, "category", "all")) for t in targets]
     mask_of = (lambda c: getattr(c, "movable", None)) if cfg.use_mask else (lambda c: None)

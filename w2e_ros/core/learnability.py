@@ -56,6 +56,7 @@ def _metrics(aff: np.ndarray, sim: np.ndarray, data: InteractionData) -> dict[st
     vm = classification_metrics(aff[valid], y[valid])
     out.update(valid_fscore=vm["fscore"], valid_auroc=vm["auroc"], valid_ap=vm["ap"])
     out["simcorr_auroc"] = auroc(sim, (aff > 0.5) == y)
+    out["confidence_simcorr_auroc"] = auroc(np.abs(aff - 0.5), (aff > 0.5) == y)  # baseline
     return out
 
 

@@ -38,7 +38,7 @@ class FeatureCache:
     cloud is encoded once per process, however many methods, seeds and budgets use it.
     """
 
-    def __init__(self, max_clouds: int = 4096) -> None:
+    def __init__(self, max_clouds: int = 2048) -> None:
         self.max_clouds = max_clouds
         self._store: dict[tuple[str, str], torch.Tensor] = {}
 

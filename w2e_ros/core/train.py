@@ -458,7 +458,8 @@ def train(cfg: TrainConfig, data_dir: str | Path, out_dir: str | Path, resume: b
         stats = calibrate_similarity(model, data, trainer.sim_cats, cfg.calibrate_steps,
                                      cfg.seed)
         after = validator.run(model) if validator is not None else {}
-        for k in ("csim_simcorr_auroc", "novel_simcorr_auroc", "novel_sim_mean"):
+        for k in ("csim_simcorr_auroc", "novel_simcorr_auroc", "novel_sim_mean",
+                  "novel_confidence_simcorr_auroc"):
             if k in after:
                 stats[f"val_{k}_before"], stats[f"val_{k}"] = before[k], after[k]
         save_model(run_dir / "model.pt", model, {**meta, "calibration": stats})
@@ -565,6 +566,8 @@ class Validator:
                 for k in ("fscore", "auroc", "ap"):
                     out[f"{g}_{tag}{k}"] = met[k]
             out[f"{g}_simcorr_auroc"] = auroc(sim[m], correct[m])
+            # what the similarity must beat: the affordance head's own confidence
+            out[f"{g}_confidence_simcorr_auroc"] = auroc(np.abs(aff[m] - 0.5), correct[m])
             out[f"{g}_sim_mean"] = float(sim[m].mean())
         per_cat = [auroc(aff[m], y[m]) for m in self.by_cat.values()]
         out["score"] = float(np.nanmean(per_cat)) if np.isfinite(per_cat).any() else 0.0

@@ -379,12 +379,16 @@ class InferenceNode(Node):
                               action.forward[None].astype(np.float32))
             executed.append(Executed(cloud, cand, 0, outcome_to_trial_result(outcome),
                                      update_affordance=bool(req.update_affordance)))
-        base_cfg = ex.cfg
-        ex.cfg = dataclasses.replace(base_cfg, finetune_steps=steps)
-        try:
-            stats = ex.update(executed)
-        finally:
-            ex.cfg = base_cfg
+        if req.record_only:
+            ex.remember(executed)
+            stats: dict[str, float] = {}
+        else:
+            base_cfg = ex.cfg
+            ex.cfg = dataclasses.replace(base_cfg, finetune_steps=steps)
+            try:
+                stats = ex.update(executed)
+            finally:
+                ex.cfg = base_cfg
         served.updates += 1
         res.loss = float(stats.get("loss", 0.0))
         res.affordance_loss = float(stats.get("loss_aff", 0.0))

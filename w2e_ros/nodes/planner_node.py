@@ -189,7 +189,8 @@ class RosModel:
         return out
 
     def update(self, executed: Sequence[Executed]) -> dict[str, float]:
-        """One update_model call per observed cloud; the last one saves the checkpoint."""
+        """One update_model call per executed interaction: all but the last only record, the
+        last fits on everything explored and saves the checkpoint (one fit per round)."""
         stats: dict[str, float] = {}
         for k, e in enumerate(executed):
             action = e.candidates.action(e.cloud, e.index, self.primitive)
@@ -198,7 +199,7 @@ class RosModel:
                 interactions=[action_to_interaction(action, e.cloud.object_id)],
                 outcomes=[trial_result_to_outcome(e.result)], category=self.category,
                 update_affordance=e.update_affordance, steps=self.node.settings.update_steps,
-                save_checkpoint=k == len(executed) - 1)
+                save_checkpoint=k == len(executed) - 1, record_only=k < len(executed) - 1)
             res = self.node.call(self.node.update_cli, req, "update_model")
             self.checkpoint_path = res.checkpoint_path or self.checkpoint_path
             stats = {"loss": res.loss, "loss_aff": res.affordance_loss,
@@ -383,7 +384,7 @@ class PlannerNode(Node):
         if not self.busy.acquire(blocking=False):
             res.success, res.message = False, "busy: another explore/manipulate is running"
             return res
-        prog = _Progress(int(req.budget), req.category, req.primitive)
+        prog = _Progress(int(req.budget), req.category, req.primitive)  # x objects, below
         model = None
         t0 = time.perf_counter()
         try:
@@ -402,6 +403,7 @@ class PlannerNode(Node):
                 raise ValueError(f"similarity_bar must be in (0, 1], got {bar}")
             ids, newer = self._targets(req.category, req.object_ids, req.instances)
             ids, missing = self.visible(ids, newer)
+            prog.budget = int(req.budget) * len(ids)  # interactions in all
             world = RosWorld(self)
             for i in ids:
                 world.seen_after[i] = newer

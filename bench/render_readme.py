@@ -1,0 +1,100 @@
+"""Write the README's benchmark tables from ``bench/results/benchmark.json``.
+
+The README's numbers must come from the committed results, not be typed by hand: this
+renders the headline table (mean over seeds with 95 % bootstrap intervals, and the paired
+differences against ``random`` and ``none``) between the ``<!-- benchmark:begin -->`` and
+``<!-- benchmark:end -->`` markers. ``test/test_readme_results.py`` fails when the README and
+the JSON disagree.
+
+    .venv/bin/python bench/render_readme.py            # rewrite the block
+    .venv/bin/python bench/render_readme.py --check    # exit 1 when it is stale
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+BEGIN, END = "<!-- benchmark:begin -->", "<!-- benchmark:end -->"
+NAMES = {"fscore": "F-score", "auroc": "AUROC", "ap": "AP", "success": "sample success",
+         "simcorr_auroc": "similarity AUROC for correctness"}
+
+
+def _cell(r: dict | None, signed: bool = False) -> str:
+    if r is None or r["mean"] != r["mean"]:
+        return "-"
+    v = f"{100 * r['mean']:+.1f}" if signed else f"{100 * r['mean']:.1f}"
+    return f"{v} [{100 * r['ci_low']:.1f}, {100 * r['ci_high']:.1f}]"
+
+
+def render(doc: dict, combination: str | None = None, budget: int | None = None) -> str:
+    """The headline table: every method at the largest budget, one column per (metric,
+    primitive), then the paired differences at that budget."""
+    rows = doc["rows"]
+    combos = sorted({r["combination"] for r in rows})
+    combo = combination or ("mean" if "mean" in combos else combos[0])
+    budget = budget if budget is not None else max(r["budget"] for r in rows)
+    sel = [r for r in rows if r["combination"] == combo and r["budget"] == budget]
+    prims = [p for p in ("push", "pull") if any(r["primitive"] == p for r in sel)]
+    metrics = [m for m in ("fscore", "auroc", "ap", "success")
+               if any(r["metric"] == m for r in sel)]
+    cols = [(m, p) for m in metrics for p in prims]
+    methods = list(dict.fromkeys(r["method"] for r in sel))
+    n_seeds = max((r["n_seeds"] for r in sel), default=0)
+
+    def get(method: str, m: str, p: str, vs: str | None = None) -> dict | None:
+        return next((r for r in sel if r["method"] == method and r["metric"] == m
+                     and r["primitive"] == p and r.get("vs") == vs), None)
+
+    head = "| method | " + " | ".join(f"{NAMES[m]} {p}" for m, p in cols) + " |"
+    lines = [f"Combination `{combo}`, budget {budget} interactions per explore object, "
+             f"{n_seeds} exploration seeds; % with 95 % bootstrap intervals "
+             "(test observations / objects and seeds resampled).", "", head,
+             "|---" * (len(cols) + 1) + "|"]
+    for method in methods:
+        lines.append(f"| {method} | " + " | ".join(_cell(get(method, m, p)) for m, p in cols)
+                     + " |")
+    for ref in ("random", "none"):
+        for method in methods:
+            if method == ref or get(method, cols[0][0], cols[0][1], ref) is None:
+                continue
+            lines.append(f"| {method} − {ref} (paired) | " + " | ".join(
+                _cell(get(method, m, p, ref), signed=True) for m, p in cols) + " |")
+    sc = [r for r in rows if r["combination"] == combo and r["metric"] == "simcorr_auroc"
+          and r["budget"] == 0 and r["method"] == "none" and "vs" not in r]
+    if sc:
+        lines += ["", "Similarity AUROC for \"the affordance prediction is correct\" on the "
+                  "novel test interactions, before exploring: " + ", ".join(
+                      f"{r['primitive']} {_cell(r)}" for r in sc) + "."]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--json", default=str(ROOT / "bench" / "results" / "benchmark.json"))
+    ap.add_argument("--readme", default=str(ROOT / "README.md"))
+    ap.add_argument("--check", action="store_true", help="exit 1 if the README is stale")
+    a = ap.parse_args(argv)
+    doc = json.loads(Path(a.json).read_text())
+    text = Path(a.readme).read_text()
+    if BEGIN not in text or END not in text:
+        print(f"{a.readme}: no {BEGIN} ... {END} block", file=sys.stderr)
+        return 2
+    pre, rest = text.split(BEGIN, 1)
+    _, post = rest.split(END, 1)
+    new = f"{pre}{BEGIN}\n{render(doc)}\n{END}{post}"
+    if a.check:
+        if new != text:
+            print("README benchmark block is stale: run bench/render_readme.py",
+                  file=sys.stderr)
+            return 1
+        return 0
+    Path(a.readme).write_text(new)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,27 @@
+"""What the README shows, git tracks: its benchmark numbers are rendered from the committed
+bench/results/benchmark.json, and every image it links exists in the repository."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_readme_benchmark_block_matches_the_committed_json():
+    r = subprocess.run([sys.executable, str(ROOT / "bench" / "render_readme.py"), "--check"],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+
+
+def test_every_linked_image_and_table_is_tracked_by_git():
+    text = (ROOT / "README.md").read_text()
+    links = re.findall(r"\]\(((?:bench|checkpoints|config|docs)/[^)\s]+)\)", text)
+    assert links, "the README links no results"
+    tracked = set(subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True,
+                                 text=True).stdout.split())
+    missing = [p for p in links if p not in tracked]
+    assert not missing, f"README links files git does not track: {missing}"
