@@ -31,9 +31,22 @@ def replay():
 def _explorer(mode: str, replay=None, seed: int = 0, **kw) -> W2EExplorer:
     torch.manual_seed(seed)
     cfg = ExploreConfig(**{"finetune": mode, "finetune_steps": 60, "finetune_min_steps": 60,
-                           "finetune_lr": 3e-3, **kw})
+                           "finetune_lr": 3e-3, "anchor": 0.0, **kw})
     return W2EExplorer(W2EModel(SMALL), cfg, replay, ("cabinet",), SIM, seed=seed,
                        features=FeatureCache())
+
+
+def test_anchor_keeps_the_heads_near_the_trained_weights(novel):
+    """L2-SP: with the anchor the fitted heads stay closer to where they started."""
+    dist = {}
+    for anchor in (0.0, 1.0):
+        exp = _explorer("heads", anchor=anchor)
+        start = {k: v.clone() for k, v in exp.model.aff_head.state_dict().items()}
+        exp.add_data(novel)
+        exp.fit()
+        dist[anchor] = sum(float(((v - start[k]) ** 2).sum())
+                           for k, v in exp.model.aff_head.state_dict().items())
+    assert dist[1.0] < 0.5 * dist[0.0]
 
 
 def test_balanced_weights_give_both_classes_equal_weight():
@@ -74,13 +87,13 @@ def test_fit_learns_the_explored_set(novel, mode):
 
 
 def test_fit_stops_when_the_explored_loss_levels_off(novel):
-    # lr 0: the loss never improves after the first check (step 10), so the fit stops
-    # after fit_patience more checks instead of running its 2000 steps
+    # lr 0: the loss never improves after the first check (step 20; checks every 20 steps),
+    # so the fit stops after fit_patience more checks instead of running its 2000 steps
     exp = _explorer("heads", finetune_steps=2000, finetune_min_steps=10, fit_patience=2,
                     finetune_lr=0.0)
     exp.add_data(novel)
     out = exp.fit()
-    assert out["fit_steps"] == 30
+    assert out["fit_steps"] == 60
     assert exp.fit_log[-1] is out
 
 

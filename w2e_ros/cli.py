@@ -147,10 +147,13 @@ def _add_explore_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--finetune", default="heads", choices=["heads", "all"],
                    help="fine-tune the heads on cached features (encoder frozen) or every "
                         "weight")
-    p.add_argument("--finetune-steps", type=int, default=1000,
+    p.add_argument("--finetune-steps", type=int, default=500,
                    help="most gradient steps per update (stops when the explored-set fit "
                         "levels off)")
     p.add_argument("--finetune-lr", type=float, default=1e-3, help="fine-tuning learning rate")
+    p.add_argument("--anchor", type=float, default=0.1,
+                   help="L2-SP weight pulling the fine-tuned heads towards the trained ones "
+                        "(0: off); without it a few interactions made the model worse")
     p.add_argument("--replay-fraction", type=float, default=0.01,
                    help="share of the training interactions replayed (distinct ones)")
     p.add_argument("--no-mask", action="store_true",
@@ -166,7 +169,8 @@ def _explore_config(a: argparse.Namespace, **kw: object) -> ExploreConfig:
     return ExploreConfig(points_per_object=a.points, dirs_per_point=a.dirs,
                          round_size=a.round_size, finetune=a.finetune,
                          finetune_steps=a.finetune_steps, finetune_lr=a.finetune_lr,
-                         replay_fraction=a.replay_fraction, use_mask=not a.no_mask,
+                         replay_fraction=a.replay_fraction, anchor=a.anchor,
+                         use_mask=not a.no_mask,
                          sim_bar=a.bar, **kw)
 
 

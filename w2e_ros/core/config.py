@@ -103,12 +103,13 @@ class ExploreConfig:
     # fine-tuning after each round: on ALL explored interactions (+ flipped negatives,
     # class-balanced) and a replay of the training data, until the fit levels off
     finetune: str = "heads"  # heads: encoder frozen, features cached | all: every weight
-    finetune_steps: int = 1000  # most Adam steps per update
+    finetune_steps: int = 500  # most Adam steps per update
     finetune_min_steps: int = 100
     finetune_batch: int = 256  # explored rows per step (heads); clouds per step = /16 (all)
     finetune_lr: float = 1e-3
     fit_patience: int = 10  # checks (every 20 steps) without a 0.5 % better explored-set loss
     replay_fraction: float = 0.01  # distinct training interactions replayed
     replay_weight: float = 0.5  # weight of the replay loss next to the explored loss
+    anchor: float = 0.1  # L2-SP: weight of the squared distance of the heads to the base
     snapshot_budgets: tuple[int, ...] = field(default=(1, 2, 5))
     seed: int = 0

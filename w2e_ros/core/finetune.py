@@ -105,6 +105,9 @@ class W2EExplorer:
         params = [p for n, p in model.named_parameters()
                   if not (self.heads_only and n.startswith("encoder."))]
         self.opt = torch.optim.Adam(params, lr=cfg.finetune_lr)
+        # L2-SP anchor: the weights the fine-tuning starts from (a few explored interactions
+        # must not drag the pre-trained heads far from what the training data taught them)
+        self._anchor = [(p, p.detach().clone()) for p in params] if cfg.anchor > 0 else []
         self.aff_cats, self.sim_cats = tuple(aff_categories), tuple(sim_categories)
         self.train_similarity = train_similarity
         self.features = features or FEATURES
@@ -252,6 +255,9 @@ class W2EExplorer:
                 logit = self.model.aff_head(f[m], torch.from_numpy(r.action).to(self.device)[m])
                 loss_aff = loss_aff + w * F.binary_cross_entropy_with_logits(
                     logit, y[m], weight=wt)
+        if self._anchor:
+            loss_aff = loss_aff + self.cfg.anchor * sum(
+                ((p - p0) ** 2).sum() for p, p0 in self._anchor)
         self.opt.zero_grad(set_to_none=True)
         if loss_aff.requires_grad:
             loss_aff.backward()
