@@ -172,12 +172,12 @@ def test_budget_is_b_interactions_per_object_in_rounds_capped_per_object(novel):
     assert res.snapshots == {0: 0, 1: 1, 2: 2, 5: 2}
 
 
-def test_default_round_is_a_fifth_of_the_objects(novel):
+def test_default_round_is_half_of_the_objects(novel):
     model, world = FakeModel([0.0] * 6, [0.0] * 6), TaggedWorld(novel)
     res = explore(model, world, list(range(6)), get_strategy("random"),
                   _fake_cfg(budget=1, per_object_per_round=1), "push",
                   rng=np.random.default_rng(1))
-    assert [len(r) for r in model.rounds] == [2, 2, 2] and len(res.steps) == 6
+    assert [len(r) for r in model.rounds] == [3, 3] and len(res.steps) == 6
 
 
 def test_budget_is_chosen_globally_so_an_unfamiliar_object_takes_more(novel):

@@ -160,3 +160,21 @@ def test_snapshots_are_copies_that_rebuild_the_model(novel):
 def test_unknown_finetune_mode_is_refused():
     with pytest.raises(ValueError, match="finetune"):
         W2EExplorer(W2EModel(SMALL), ExploreConfig(finetune="encoder"))
+
+
+def test_only_failures_and_no_replay_leave_the_affordance_head_alone(novel):
+    """A set of failures alone cannot teach where things move; fitting it would only teach
+    "nothing moves" (the demo lost 9 of 10 successes that way). The similarity head still
+    learns."""
+    exp = _explorer("heads")
+    fails = np.flatnonzero(~novel.success)[:12]
+    aff0 = {k: v.clone() for k, v in exp.model.aff_head.state_dict().items()}
+    sim0 = {k: v.clone() for k, v in exp.model.sim_head.state_dict().items()}
+    exp.add_data(novel, fails)
+    out = exp.fit()
+    assert out["affordance_trained"] == 0.0
+    for k, v in exp.model.aff_head.state_dict().items():
+        torch.testing.assert_close(v, aff0[k])
+    assert any(not torch.equal(v, sim0[k]) for k, v in exp.model.sim_head.state_dict().items())
+    exp.add_data(novel, np.flatnonzero(novel.success)[:2])  # one success: now it may learn
+    assert exp.fit()["affordance_trained"] == 1.0

@@ -492,6 +492,12 @@ class PlannerNode(Node):
             ids, newer = self._targets(req.category, req.object_ids, req.instances)
             _, missing = self.visible(ids, newer)
             world = RosWorld(self)
+            # candidate actions seeded by the instance when the request names one (else by the
+            # object id), so the same object is judged on the same candidates before and after
+            # exploring: a before/after comparison is then paired, not two random draws
+            loaded = ids[len(ids) - len(req.instances):] if len(req.instances) else []
+            key_of = {oid: f"{req.category}/{int(i)}"
+                      for oid, i in zip(loaded, req.instances, strict=True)}
             for oid in ids:
                 if oid in missing:  # keep the request order; say why nothing was done
                     res.interactions.append(Interaction(object_id=oid, primitive=req.primitive))
@@ -505,7 +511,8 @@ class PlannerNode(Node):
                 maps = self.call(self.predict_cli, PredictMaps.Request(
                     clouds=[cloud.msg], object_ids=[oid], primitive=req.primitive,
                     num_directions=s.manipulate_directions, num_best=1,
-                    seed=stable_seed("manipulate", oid, s.seed)), "predict_maps")
+                    seed=stable_seed("manipulate", key_of.get(oid, oid), s.seed)),
+                    "predict_maps")
                 best = maps.maps[0].best_actions[0]
                 best.object_id, best.primitive = oid, req.primitive
                 outcome = self.execute(best)
