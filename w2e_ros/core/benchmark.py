@@ -315,8 +315,9 @@ def _stats(path: Path, cfg: BenchmarkConfig, rng: np.random.Generator) -> list[d
                 if not np.isfinite(point):
                     continue
                 bs = np.array([value(method, b, metric, r, o, sp) for r, o, sp in boots])
+                n_seeds = sum((method, sd, b) in preds for sd in seeds)
                 base = {"combination": combo, "primitive": prim, "method": method,
-                        "budget": b, "metric": metric, "n_seeds": len(seeds)}
+                        "budget": b, "metric": metric, "n_seeds": n_seeds}
                 out.append({**base, "mean": point, **_ci(bs)})
                 for ref in REFERENCES:
                     if ref == method or ref not in methods:
