@@ -65,6 +65,7 @@ def stack(tmp_path_factory):
                       "-p", f"pull_checkpoint:={ckpt['pull']}",
                       "-p", f"adapted_dir:={tmp / 'adapted'}", "-p", "finetune_steps:=2"],
         "planner": ["-p", "points_per_object:=128", "-p", "execute_timeout_s:=30.0",
+                    "-p", "observe_timeout_s:=40.0",  # a loaded CI machine can stall frames
                     "-p", "connect_timeout_s:=3.0"],
     }
     with Stack(env=env, output=out, ready_timeout=120.0, extra_args=extra) as s:

@@ -210,6 +210,7 @@ def _run_fewshot(a: argparse.Namespace) -> int:
     from w2e_ros.core.model import load_model, save_model
     from w2e_ros.core.sim_world import SimWorld
     from w2e_ros.core.strategies import get_strategy
+    from w2e_ros.core.train import replay_data
 
     torch.set_num_threads(a.threads)
     model, meta = load_model(a.model)
@@ -217,11 +218,7 @@ def _run_fewshot(a: argparse.Namespace) -> int:
     cats = a.categories or load_categories().novel(meta.get("combo"))
     replay = None
     if a.replay_data:
-        train_cats = list(dict.fromkeys(meta.get("aff_categories", []) +
-                                        meta.get("sim_categories", [])))
-        replay = InteractionData.load(a.replay_data).select(
-            primitive=primitive, categories=train_cats or None,
-            instances=load_categories().instances(cats[0], "train"))
+        replay = replay_data(InteractionData.load(a.replay_data), meta, primitive)
     cfg = _explore_config(a, budget=a.budget, seed=a.seed,
                           snapshot_budgets=tuple(b for b in (1, 2, 5) if b <= a.budget)
                           or (a.budget,))

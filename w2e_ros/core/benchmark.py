@@ -45,6 +45,7 @@ from w2e_ros.core.explore import fewshot
 from w2e_ros.core.metrics import auroc, average_precision, fscore
 from w2e_ros.core.model import W2EModel, load_model
 from w2e_ros.core.strategies import get_strategy
+from w2e_ros.core.train import replay_data
 
 log = logging.getLogger("w2e.benchmark")
 
@@ -171,11 +172,7 @@ def run_benchmark(cfg: BenchmarkConfig, world: Any | None = None) -> dict:
                                             "seed": seed})
                     replay = None
                     if train_all is not None and strategy.explores:
-                        tc = list(dict.fromkeys(meta.get("aff_categories", []) +
-                                                meta.get("sim_categories", [])))
-                        replay = train_all.select(
-                            primitive=prim, categories=tc,
-                            instances=cats_cfg.instances(tc[0], "train"))
+                        replay = replay_data(train_all, meta, prim)
                     models: dict[str, dict[int, W2EModel]] = {}
                     if strategy.explores:
                         runs = fewshot(model, meta, world, novel, strategy, ecfg, prim, replay,

@@ -285,8 +285,8 @@ class W2EExplorer:
             loss_sim.backward()
             self.opt.step()
         self.model.eval()
-        return {"loss_aff": float(loss_aff), "loss_sim": float(loss_sim),
-                "loss": float(loss_aff) + float(loss_sim)}
+        la, ls = float(loss_aff.detach()), float(loss_sim.detach())
+        return {"loss_aff": la, "loss_sim": ls, "loss": la + ls}
 
     @torch.no_grad()
     def explored_fit(self) -> dict[str, float]:

@@ -28,6 +28,7 @@ from w2e_ros.core.finetune import W2EExplorer
 from w2e_ros.core.metrics import auroc, classification_metrics
 from w2e_ros.core.model import load_model
 from w2e_ros.core.predict import predict_interactions
+from w2e_ros.core.train import replay_data
 
 log = logging.getLogger("w2e.learnability")
 
@@ -83,11 +84,7 @@ def run_learnability(cfg: LearnabilityConfig) -> dict:
                          f"({cfg.pool_data}) or the test data ({cfg.test_data})")
     replay = None
     if cfg.replay_data:
-        train_cats = list(dict.fromkeys(meta.get("aff_categories", []) +
-                                        meta.get("sim_categories", [])))
-        replay = InteractionData.load(cfg.replay_data).select(
-            primitive=prim, categories=train_cats or None,
-            instances=cats_cfg.instances(novel[0], "train"))
+        replay = replay_data(InteractionData.load(cfg.replay_data), meta, prim)
     base_aff, base_sim = predict_interactions(model, test)
     pool_aff, _ = predict_interactions(model, pool)
     wrongness = np.abs(pool_aff - pool.success.astype(np.float32))

@@ -288,6 +288,16 @@ def load_training_data(data_dir: str | Path, method: str, combo: str, primitive:
     return sel
 
 
+def replay_data(data: InteractionData, meta: dict, primitive: str) -> InteractionData:
+    """What a few-shot run replays: the train-split interactions of the categories the model
+    was trained on (its checkpoint's ``aff_categories`` + ``sim_categories``), one primitive."""
+    cats = list(dict.fromkeys(list(meta.get("aff_categories", [])) +
+                              list(meta.get("sim_categories", []))))
+    cfg = load_categories()
+    train_split = cfg.instances(cats[0] if cats else cfg.categories[0], "train")
+    return data.select(primitive=primitive, categories=cats or None, instances=train_split)
+
+
 class Trainer:
     """Model + Adam + sampler + running-accuracy counters; checkpoints and resumes."""
 
