@@ -525,7 +525,7 @@ def calibrate_similarity(model: W2EModel, data: InteractionData, sim_cats: tuple
     with torch.no_grad():
         sim = torch.sigmoid(head(f, a)).cpu().numpy()
     return {"rows": float(len(y)), "train_correct_rate": float(correct.mean()),
-            "train_simcorr_auroc": auroc(sim, correct), "final_loss": float(loss)}
+            "train_simcorr_auroc": auroc(sim, correct), "final_loss": float(loss.detach())}
 
 
 class Validator:
