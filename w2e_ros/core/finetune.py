@@ -142,7 +142,9 @@ class W2EExplorer:
         return self._cloud_ids[k]
 
     def _rows_from_data(self, data: InteractionData, rows: np.ndarray) -> Rows:
-        ids = np.array([self._cloud_id(data.points[o]) for o in range(data.num_observations)])
+        used = np.unique(data.obs_index[rows])  # hash only the clouds these rows touch
+        ids = np.zeros(data.num_observations, np.int64)
+        ids[used] = [self._cloud_id(data.points[o]) for o in used]
         cats = data.category[data.obs_index[rows]]
         aff = np.isin(cats, self.aff_cats) if self.aff_cats else np.ones(len(rows), bool)
         sim = np.isin(cats, self.sim_cats) if self.sim_cats else np.zeros(len(rows), bool)

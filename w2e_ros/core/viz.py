@@ -102,10 +102,7 @@ def metric_curves(summary: dict, methods: Sequence[str], budgets: Sequence[int],
     labelled = [ax for ax in axes.flat if ax.get_legend_handles_labels()[0]]
     if labelled:
         labelled[0].legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return _save(fig, path, dpi=100)
 
 
 def training_curves(metrics_jsonl: str | Path, path: str | Path, title: str = "") -> Path:
@@ -150,12 +147,7 @@ def training_curves(metrics_jsonl: str | Path, path: str | Path, title: str = ""
         for ax in axes[1:]:
             ax.axvline(best["step"], color="k", lw=0.6, ls=":")
     fig.suptitle(title)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
+    return _save(fig, path, dpi=90)
 
 
 def learnability_figure(summary: dict, path: str | Path) -> Path:
@@ -177,9 +169,14 @@ def learnability_figure(summary: dict, path: str | Path) -> Path:
         ax.set_title(f"{summary['primitive']}: novel-category {title}")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
+    return _save(fig, path, dpi=90)
+
+
+def _save(fig: plt.Figure, path: str | Path, dpi: int) -> Path:
+    """Lay out, write (creating the folder) and close a figure."""
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=90)
+    fig.savefig(path, dpi=dpi)
     plt.close(fig)
     return path
