@@ -2,8 +2,9 @@
 
 Every trial builds a fresh physics-only SAPIEN scene, restores the given joint state,
 drops in the flying gripper and executes the primitive (DESIGN §3), so trials are
-independent and bit-identical for the same inputs. The camera works from the same
-object descriptions without any physics.
+independent and bit-identical for the same inputs. The primitive's waypoints and the success
+rule are the core's contract (:mod:`w2e_ros.core.primitives`), which this world implements.
+The camera works from the same object descriptions without any physics.
 """
 
 from __future__ import annotations
@@ -17,33 +18,15 @@ import numpy as np
 from sim_bridge.camera import CameraSettings, PosedMesh, make_camera, random_view, view_pose
 from sim_bridge.geometry import make_pose, normalize, sapien_to_pose, transform_points
 from sim_bridge.objects.model import ObjectModel
-from sim_bridge.types import Action, Observation, TrialResult
-
-PUSH_START = 0.15  # wrist behind the contact point at the start (m, along -up)
-PUSH_END = 0.10  # wrist behind the contact point at the end of the push / approach
-SIDE_MOVE = 0.05  # extra move of the -left / -up variants
-MOTION_THRESHOLD = 0.01  # DESIGN §3: success needs |motion| > 0.01 (m or rad)
-RANGE_FRACTION = 0.5  # ... or |motion| / range > 0.5
-PULL_COSINE = 0.5  # pull: contact point must move along -up
-
-
-def judge_motion(motion: np.ndarray, target_joint: int, joint_range: float, pulling: bool,
-                 displacement: np.ndarray, pull_direction: np.ndarray) -> tuple[bool, str]:
-    """DESIGN §3's success rule for a valid trial, shared by the simulator and the executor
-    (which judges from robot-side measurements): the touched part is movable and moved
-    > 0.01 (m or rad) or more than half its range, and a pull moved the contact point along
-    the hand's pulling direction. Returns (success, reason when not)."""
-    if not 0 <= target_joint < len(motion):
-        return False, "contact point is on a fixed part"
-    mv = abs(float(motion[target_joint]))
-    if not (mv > MOTION_THRESHOLD or mv / max(float(joint_range), 1e-9) > RANGE_FRACTION):
-        return False, "part did not move enough"
-    if pulling:
-        d = np.asarray(displacement, float)
-        cos = float(d @ pull_direction) / max(float(np.linalg.norm(d)), 1e-12)
-        if cos <= PULL_COSINE:
-            return False, "pull moved the part the wrong way"
-    return True, ""
+from sim_bridge.types import Observation
+from w2e_ros.core.primitives import (
+    PUSH_START,
+    Action,
+    TrialResult,
+    gripper_frame,
+    judge_motion,
+    schedule,
+)
 
 
 @dataclass
@@ -56,35 +39,6 @@ class SimSettings:
     settle_steps: int = 20  # hold at the end before measuring
     touch_impulse: float = 1e-6  # a contact counts as touching above this impulse (N s)
     camera: CameraSettings = field(default_factory=CameraSettings)
-
-
-def gripper_frame(action: Action) -> np.ndarray:
-    """Rotation with columns [forward, left, up] (forward made orthogonal to up)."""
-    up = normalize(action.up)
-    fwd = np.asarray(action.forward, float) - (np.asarray(action.forward, float) @ up) * up
-    fwd = normalize(fwd)
-    return np.stack([fwd, np.cross(up, fwd), up], axis=1)
-
-
-def schedule(primitive: str) -> tuple[list[tuple[np.ndarray, float, str]], float]:
-    """Waypoints (wrist offset in the gripper frame, finger target, kind) and start fingers.
-
-    The offset is measured from the start pose (0.15 m behind the point along up).
-    """
-    approach = np.array([0.0, 0.0, PUSH_START - PUSH_END])
-    side = {"left": np.array([SIDE_MOVE, 0, 0]), "up": np.array([0, SIDE_MOVE, 0])}
-    base, _, variant = primitive.partition("-")
-    if base == "push":
-        steps = [(approach, 0.0, "move")]
-        if variant:
-            steps.append((approach + side[variant], 0.0, "move"))
-        return steps, 0.0
-    if base == "pull":
-        steps = [(approach, 0.04, "move"), (approach, 0.0, "close"), (np.zeros(3), 0.0, "move")]
-        if variant:
-            steps.append((side[variant], 0.0, "move"))
-        return steps, 0.04
-    raise ValueError(f"unknown primitive {primitive!r}")
 
 
 class ObjectWorld:

@@ -25,9 +25,9 @@ from w2e_msgs.msg import Interaction, SceneObject, SegmentedObjects  # noqa: E40
 from w2e_msgs.srv import LoadScene  # noqa: E402
 
 from sim_bridge.objects import make_object  # noqa: E402
-from sim_bridge.types import Action  # noqa: E402
 from sim_bridge.world import ObjectWorld  # noqa: E402
 from w2e_ros.bringup import Stack  # noqa: E402
+from w2e_ros.core.primitives import Action  # noqa: E402
 from w2e_ros.ros.conversions import action_to_interaction, from_pose, to_pose  # noqa: E402
 from w2e_ros.ros.pointcloud import cloud_to_arrays  # noqa: E402
 from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, ros_env  # noqa: E402

@@ -7,11 +7,11 @@ import pytest
 import torch
 from synthetic import Cloud, RuleWorld, synthetic_data
 
-from sim_bridge.types import TrialResult
 from w2e_ros.core.config import ExploreConfig, ModelConfig
 from w2e_ros.core.explore import Executed, explore, sample_candidates
 from w2e_ros.core.finetune import W2EExplorer
 from w2e_ros.core.model import W2EModel
+from w2e_ros.core.primitives import TrialResult
 from w2e_ros.core.proposals import ProposalConfig
 from w2e_ros.core.strategies import Scored, get_strategy
 

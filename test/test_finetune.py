@@ -119,8 +119,8 @@ def test_replay_rows_are_distinct_training_interactions_with_their_roles(replay)
 
 def test_update_adds_executed_interactions_and_the_replay_keeps_training_behaviour(novel,
                                                                                   replay):
-    from sim_bridge.types import TrialResult
     from w2e_ros.core.explore import Candidates, Executed
+    from w2e_ros.core.primitives import TrialResult
 
     exp = _explorer("heads", replay, replay_fraction=0.1, finetune_steps=20,
                     finetune_min_steps=20)

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from sim_bridge.objects import make_object
-from sim_bridge.types import Action
 from sim_bridge.world import ObjectWorld
+from w2e_ros.core.primitives import Action
 
 
 def first(category, word, instances=range(50)):

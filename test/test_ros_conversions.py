@@ -16,7 +16,7 @@ import rclpy  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import PointCloud2, PointField  # noqa: E402
 
-from sim_bridge.types import PRIMITIVES, Action, TrialResult  # noqa: E402
+from w2e_ros.core.primitives import PRIMITIVES, Action, TrialResult  # noqa: E402
 from w2e_ros.ros.conversions import (  # noqa: E402
     action_to_interaction,
     from_pose,

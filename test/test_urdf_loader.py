@@ -5,9 +5,9 @@ import pytest
 
 from sim_bridge.geometry import box_mesh, sapien_to_pose
 from sim_bridge.physics import build_object, make_scene
-from sim_bridge.types import Action
 from sim_bridge.urdf_loader import load_partnet, read_obj
 from sim_bridge.world import ObjectWorld
+from w2e_ros.core.primitives import Action
 
 
 def write_boxes(path, boxes):

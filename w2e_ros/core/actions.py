@@ -1,15 +1,14 @@
 """Sampling of action frames and their 6-D encoding (DESIGN §3).
 
-An action at a contact point is the gripper frame [forward, left, up]: ``up`` is the approach
-direction (into the surface, so opposite the outward normal), ``forward`` the orientation of
-the fingers about it. The network sees the frame as its first two defining columns (6-D).
+An action at a contact point is the gripper frame [forward, left, up]
+(:func:`w2e_ros.core.primitives.gripper_frame`): ``up`` is the approach direction (into the
+surface, so opposite the outward normal), ``forward`` the orientation of the fingers about it.
+The network sees the frame as its first two defining columns (6-D).
 """
 
 from __future__ import annotations
 
 import numpy as np
-
-BASE_PRIMITIVES: tuple[str, ...] = ("push", "pull")
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -57,11 +56,3 @@ def sample_forward(up: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 def encode_rotation(up: np.ndarray, forward: np.ndarray) -> np.ndarray:
     """(M, 3), (M, 3) -> (M, 6): the two columns that define the gripper rotation."""
     return np.concatenate([np.asarray(up), np.asarray(forward)], axis=-1).astype(np.float32)
-
-
-def gripper_rotation(up: np.ndarray, forward: np.ndarray) -> np.ndarray:
-    """(3,), (3,) -> (3, 3) rotation with columns [forward, left, up]."""
-    up = _unit(np.asarray(up, dtype=np.float64))
-    fwd = _unit(np.asarray(forward, dtype=np.float64) - np.dot(forward, up) * up)
-    left = np.cross(up, fwd)
-    return np.stack([fwd, left, up], axis=1)

@@ -31,9 +31,9 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from sim_bridge.types import Action
 from w2e_ros.core.categories import load_categories
 from w2e_ros.core.data import InteractionData
+from w2e_ros.core.primitives import Action
 from w2e_ros.core.proposals import ProposalConfig, Proposer
 from w2e_ros.core.sim_world import SimWorld, Target, stable_seed
 

@@ -23,11 +23,11 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from sim_bridge.types import Action, TrialResult
 from w2e_ros.core.config import ExploreConfig
 from w2e_ros.core.data import InteractionData
 from w2e_ros.core.finetune import W2EExplorer
 from w2e_ros.core.model import W2EModel
+from w2e_ros.core.primitives import Action, TrialResult
 from w2e_ros.core.proposals import DEFAULT_PROPOSAL, ProposalConfig, Proposer
 from w2e_ros.core.strategies import Scored, Strategy
 

@@ -11,9 +11,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sim_bridge.types import Action, TrialResult
 from w2e_ros.core.categories import load_categories
 from w2e_ros.core.pointcloud import fps_indices
+from w2e_ros.core.primitives import Action, TrialResult
 
 
 @dataclass(frozen=True)

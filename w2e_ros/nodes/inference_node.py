@@ -33,13 +33,13 @@ from std_srvs.srv import Trigger
 from w2e_msgs.msg import AffordanceMap, Interaction
 from w2e_msgs.srv import PredictMaps, UpdateModel
 
-from sim_bridge.types import PRIMITIVES, Action
-from w2e_ros.core.actions import BASE_PRIMITIVES, sample_forward, sample_up
+from w2e_ros.core.actions import sample_forward, sample_up
 from w2e_ros.core.config import ExploreConfig
 from w2e_ros.core.explore import Candidates, Executed
 from w2e_ros.core.finetune import W2EExplorer
 from w2e_ros.core.model import W2EModel, default_device, load_model, save_model
 from w2e_ros.core.pointcloud import check_cloud, fps_indices
+from w2e_ros.core.primitives import BASE_PRIMITIVES, PRIMITIVES, Action
 from w2e_ros.paths import default_checkpoint
 from w2e_ros.ros.conversions import (
     action_to_interaction,

@@ -37,10 +37,10 @@ from w2e_msgs.msg import (
 )
 from w2e_msgs.srv import Explore, LoadScene, Manipulate, PredictMaps, UpdateModel
 
-from sim_bridge.types import PRIMITIVES, Action, TrialResult
 from w2e_ros.core.categories import load_categories
 from w2e_ros.core.config import ExploreConfig
 from w2e_ros.core.explore import Candidates, Executed, StepRecord, explore
+from w2e_ros.core.primitives import PRIMITIVES, Action, TrialResult
 from w2e_ros.core.sim_world import stable_seed
 from w2e_ros.core.strategies import Scored, get_strategy
 from w2e_ros.ros.conversions import (

@@ -3,8 +3,9 @@
 Plain Python (no rclpy). The executor turns an :class:`Action` into the wrist waypoints of
 its primitive (DESIGN §3: start 0.15 m behind the point along ``up``, ...); the simulator
 bridge, which can only run whole primitives, maps such a trajectory back to the action it
-encodes and refuses anything else. Both directions use the simulator's own schedule
-(:func:`sim_bridge.world.schedule`), so there is one definition of each primitive's motion.
+encodes and refuses anything else. Both directions use the core's schedule
+(:func:`w2e_ros.core.primitives.schedule`), which the simulator runs too, so there is one
+definition of each primitive's motion.
 """
 
 from __future__ import annotations
@@ -13,8 +14,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sim_bridge.types import PRIMITIVES, Action, TrialResult
-from sim_bridge.world import PUSH_START, gripper_frame, judge_motion, schedule
+from w2e_ros.core.primitives import (
+    PRIMITIVES,
+    PUSH_START,
+    Action,
+    TrialResult,
+    gripper_frame,
+    judge_motion,
+    schedule,
+)
 
 GRIPPER_KEEP, GRIPPER_OPEN, GRIPPER_CLOSE = 0, 1, 2  # = FollowWaypoints.Goal constants
 POSITION_TOLERANCE = 0.005  # m: a trajectory within this of a primitive's is that primitive
