@@ -3,8 +3,13 @@
 Subscribes to ``camera/points`` (sensor_msgs/PointCloud2, sensor-data QoS) and publishes
 w2e_msgs/SegmentedObjects on ``objects`` (reliable, transient local: a planner that starts
 later still gets the latest objects). The work is done by the ROS-free
-:class:`w2e_ros.ros.segmentation.Segmenter`. A malformed cloud (no x/y/z, truncated data,
-NaNs only, ...) is logged with the reason and skipped; the node keeps running.
+:class:`w2e_ros.ros.segmentation.Segmenter`, in the robot frame ``frame_id``.
+
+A cloud in another frame (a real camera's optical frame: organised, NaN where the depth is
+missing, packed ``rgb``) is moved into ``frame_id`` first, by TF or by the static
+``camera_pose`` (:mod:`w2e_ros.ros.transforms`); its invalid points are dropped, its colours
+ignored. A malformed cloud (no x/y/z, truncated data, ...) or one without a transform is
+logged with the reason and skipped; the node keeps running.
 """
 
 from __future__ import annotations
@@ -12,8 +17,10 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import Header
 from w2e_msgs.msg import SegmentedObject, SegmentedObjects
 
 from w2e_ros.ros.conversions import to_point, to_vector3
@@ -22,6 +29,13 @@ from w2e_ros.ros.pointcloud import CloudFormatError, arrays_to_cloud, cloud_to_a
 from w2e_ros.ros.qos import LATCHED_QOS, SENSOR_QOS
 from w2e_ros.ros.segmentation import Segmenter, SegmenterConfig
 from w2e_ros.ros.spin import run_node
+from w2e_ros.ros.transforms import (
+    TRANSFORM_SOURCES,
+    CameraFrames,
+    TfLookup,
+    parse_camera_pose,
+    tf_available,
+)
 
 LABEL_FIELD = "object_id"
 
@@ -30,7 +44,18 @@ LABEL_FIELD = "object_id"
 class SegmentationSettings:
     """Parameters of the segmentation node (config/w2e_stack.yaml, section segmentation)."""
 
-    frame_id: str = param("world", "expected frame of the camera cloud ('' accepts any)")
+    frame_id: str = param("world", "robot frame: clouds are moved into it, segmented and "
+                          "published in it ('': any cloud as it is, no transform)")
+    transform_source: str = param(
+        "auto", "camera-to-frame_id transform: tf (looked up in TF, camera_pose the fallback), "
+        "static (camera_pose), auto (tf where tf2_ros is importable, else static)")
+    camera_pose: list[float] = param(
+        [], "static pose of the camera's cloud frame in frame_id, x y z qx qy qz qw as "
+        "static_transform_publisher takes it ([]: none)")
+    camera_frame: str = param(
+        "", "the cloud frame camera_pose is for, e.g. camera_color_optical_frame ('': any "
+        "frame other than frame_id)")
+    tf_timeout_s: float = param(0.2, "how long one TF lookup may wait (s)", min=0.0)
     use_labels: bool = param(True, "use the cloud's object_id field when it has one")
     workspace_min: list[float] = param([-3.0, -3.0, -0.5], "workspace box, lower corner (m)")
     workspace_max: list[float] = param([3.0, 3.0, 3.0], "workspace box, upper corner (m)")
@@ -58,6 +83,7 @@ class SegmentationNode(Node):
         self.get_logger().info(f"settings: {describe(s)}")
         if len(s.workspace_min) != 3 or len(s.workspace_max) != 3:
             raise ValueError("workspace_min and workspace_max need 3 values each")
+        self.frames = self._camera_frames(s)
         self.segmenter = Segmenter(SegmenterConfig(
             workspace_min=s.workspace_min, workspace_max=s.workspace_max,
             voxel_size=s.voxel_size, plane_distance=s.plane_distance,
@@ -65,21 +91,50 @@ class SegmentationNode(Node):
             cluster_min_points=s.cluster_min_points, min_object_points=s.min_object_points,
             num_points=s.num_points, match_distance=s.match_distance, use_labels=s.use_labels))
         self._pub = self.create_publisher(SegmentedObjects, "objects", LATCHED_QOS)
-        self.create_subscription(PointCloud2, "camera/points", self._on_cloud, SENSOR_QOS)
+        # clouds one at a time (the segmenter tracks ids); a TF lookup waiting in this callback
+        # lets the listener's reentrant callbacks run on the executor's other thread
+        self.create_subscription(PointCloud2, "camera/points", self._on_cloud, SENSOR_QOS,
+                                 callback_group=MutuallyExclusiveCallbackGroup())
+
+    def _camera_frames(self, s: SegmentationSettings) -> CameraFrames:
+        """The transform rule of the settings; ValueError for a bad pose or source."""
+        if s.transform_source not in TRANSFORM_SOURCES:
+            raise ValueError(f"transform_source must be one of {TRANSFORM_SOURCES}, got "
+                             f"{s.transform_source!r}")
+        static = parse_camera_pose(s.camera_pose)
+        use_tf = bool(s.frame_id) and (
+            s.transform_source == "tf" or (s.transform_source == "auto" and tf_available()))
+        if s.transform_source == "tf" and not tf_available():
+            raise ValueError("transform_source is 'tf' but tf2_ros is not importable (it comes "
+                             "with a full ROS 2 install); use 'static' with camera_pose")
+        lookup = TfLookup(self, s.frame_id, s.tf_timeout_s) if use_tf else None
+        log = self.get_logger()
+        where = ("TF" + (", camera_pose as the fallback" if static else "") if lookup
+                 else "camera_pose" if static else "none: clouds must be in frame_id")
+        log.info(f"clouds in other frames than {s.frame_id!r}: transform from {where}"
+                 if s.frame_id else "frame_id is '': clouds are segmented in their own frame")
+        return CameraFrames(s.frame_id, "tf" if lookup else "static", static, s.camera_frame,
+                            lookup, warn=lambda m: log.warning(m, throttle_duration_sec=10.0))
 
     def process(self, msg: PointCloud2) -> SegmentedObjects:
-        """Segment one cloud message; raises CloudFormatError / ValueError for a bad one."""
-        if self.settings.frame_id and msg.header.frame_id not in ("", self.settings.frame_id):
-            raise CloudFormatError(f"cloud is in frame {msg.header.frame_id!r}, expected "
-                                   f"{self.settings.frame_id!r} (no TF lookup here)")
-        arr = cloud_to_arrays(msg)
-        labels = arr.fields.get(LABEL_FIELD) if self.settings.use_labels else None
+        """Segment one cloud message; raises CloudFormatError / ValueError for a bad one
+        (FrameError, a CloudFormatError, when there is no transform into frame_id)."""
+        names = {f.name for f in msg.fields}
+        wanted = (LABEL_FIELD,) if self.settings.use_labels and LABEL_FIELD in names else ()
+        arr = cloud_to_arrays(msg, fields=wanted, drop_nonfinite=True)
+        to_robot = self.frames.transform_for(msg.header.frame_id, msg.header.stamp)
+        header = msg.header
+        if to_robot is not None:
+            arr.points = to_robot.apply(arr.points)
+            arr.normals = to_robot.rotate(arr.normals) if arr.normals is not None else None
+            header = Header(stamp=msg.header.stamp, frame_id=self.settings.frame_id)
+        labels = arr.fields.get(LABEL_FIELD)
         segments = self.segmenter.segment(arr.points, arr.normals, labels)
-        out = SegmentedObjects(header=msg.header)
+        out = SegmentedObjects(header=header)
         for seg in segments:
             out.objects.append(SegmentedObject(
                 id=int(seg.id),
-                cloud=arrays_to_cloud(seg.points, seg.normals, header=msg.header),
+                cloud=arrays_to_cloud(seg.points, seg.normals, header=header),
                 centroid=to_point(seg.centroid),
                 extent=to_vector3(seg.extent),
                 num_raw_points=int(seg.num_raw_points)))
@@ -90,8 +145,7 @@ class SegmentationNode(Node):
         try:
             out = self.process(msg)
         except (CloudFormatError, ValueError) as err:
-            self.get_logger().error(f"skipping malformed camera cloud: {err}",
-                                    throttle_duration_sec=5.0)
+            self.get_logger().error(f"skipping camera cloud: {err}", throttle_duration_sec=5.0)
             return
         self._pub.publish(out)
         self.get_logger().debug(
@@ -101,7 +155,7 @@ class SegmentationNode(Node):
 
 def main(args: list[str] | None = None) -> None:
     """Run the segmentation node."""
-    run_node(SegmentationNode, args, threads=1)
+    run_node(SegmentationNode, args, threads=2)
 
 
 if __name__ == "__main__":
