@@ -69,6 +69,16 @@ def test_every_interface_imports_and_has_its_fields():
     assert FollowWaypoints.Goal.GRIPPER_CLOSE == 2
     assert "object_ids" in LoadScene.Response.get_fields_and_field_types()
     assert SceneObject().category == ""
+    # the explore action: the service's request as its goal, its response as its result
+    from w2e_msgs.action import Explore as ExploreAction
+
+    assert ExploreAction.Goal.get_fields_and_field_types() == \
+        Explore.Request.get_fields_and_field_types()
+    assert ExploreAction.Result.get_fields_and_field_types() == \
+        Explore.Response.get_fields_and_field_types()
+    assert ExploreAction.Feedback.get_fields_and_field_types() == {
+        "progress": "w2e_msgs/ExplorationProgress"}
+    assert {"checkpoint_name", "restore"} <= set(UpdateModel.Request.get_fields_and_field_types())
 
 
 # --- the server half (a child process) -------------------------------------------------------
