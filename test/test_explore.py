@@ -213,6 +213,37 @@ def test_loop_stops_at_the_bar_once_every_object_passes_it(novel):
     assert res.snapshots == {0: 0, 1: 1, 5: 2}  # budget 5 never reached: the final model
 
 
+def test_a_stop_between_interactions_keeps_what_the_round_executed(novel):
+    """Cancel (the planner's explore action): no interaction starts once should_stop says so;
+    the ones of the round already executed are still learned from (model.update)."""
+    model, world = FakeModel([0.0] * 3, [0.0] * 3), TaggedWorld(novel)
+    cfg = _fake_cfg(budget=2, round_size=3, per_object_per_round=1)
+    res = explore(model, world, [0, 1, 2], get_strategy("random"), cfg, "push",
+                  rng=np.random.default_rng(0), should_stop=lambda: len(world.executed) >= 4)
+    assert res.stopped == "cancelled"
+    assert len(world.executed) == 4 == len(res.steps)  # round 1 (3), then 1 of round 2
+    assert [len(r) for r in model.rounds] == [3, 1]  # the cut round's one was learned from
+    # asked before anything: nothing executed, nothing learned
+    model, world = FakeModel([0.0] * 3, [0.0] * 3), TaggedWorld(novel)
+    res = explore(model, world, [0, 1, 2], get_strategy("random"), cfg, "push",
+                  should_stop=lambda: True)
+    assert res.stopped == "cancelled" and world.executed == [] and model.rounds == []
+
+
+def test_a_resumed_run_counts_the_interactions_already_spent(novel):
+    """Resume (the planner's sessions): spent interactions count against the budget and the
+    step numbers continue after them."""
+    model, world = FakeModel([0.0] * 3, [0.0] * 3), TaggedWorld(novel)
+    cfg = _fake_cfg(budget=2, round_size=2, per_object_per_round=1)
+    res = explore(model, world, [0, 1, 2], get_strategy("random"), cfg, "push",
+                  rng=np.random.default_rng(0), spent=5)
+    assert res.stopped == "budget" and len(world.executed) == 1
+    assert [s.step for s in res.steps] == [6]
+    model, world = FakeModel([0.0] * 3, [0.0] * 3), TaggedWorld(novel)
+    res = explore(model, world, [0, 1, 2], get_strategy("random"), cfg, "push", spent=6)
+    assert res.stopped == "budget" and res.steps == [] and world.executed == []
+
+
 def test_oracle_executes_the_pool_candidates_the_model_gets_most_wrong(novel):
     model, world = FakeModel([0.0] * 2, [0.0] * 2), TaggedWorld(novel)
     cfg = _fake_cfg(budget=2, round_size=2, per_object_per_round=1, oracle_pool=12)

@@ -120,7 +120,7 @@ class StepRecord:
 class ExplorationResult:
     strategy: str
     steps: list[StepRecord]
-    stopped: str  # "bar" | "budget" | "none"
+    stopped: str  # "bar" | "budget" | "exhausted" | "cancelled" | "none"
     mean_similarity: list[float]  # over all candidates, before each round and after the last
     snapshots: dict[int, Any]  # budget -> model snapshot after that many rounds
 
@@ -137,15 +137,24 @@ def _name(target: Any) -> str:
 def explore(model: ExplorationModel, world: ExplorationWorld, targets: Sequence[Any],
             strategy: Strategy, cfg: ExploreConfig, primitive: str,
             rng: np.random.Generator | None = None,
-            on_step: Callable[[StepRecord], None] | None = None) -> ExplorationResult:
+            on_step: Callable[[StepRecord], None] | None = None,
+            should_stop: Callable[[], bool] | None = None,
+            spent: int = 0) -> ExplorationResult:
     """Explore ``targets`` with ``strategy``: ``cfg.budget`` x len(targets) interactions in
     rounds of ``cfg.round_size``, or until every object's mean similarity passes the bar.
     Snapshots of the model once b x len(targets) interactions are spent, for each b in
     ``cfg.snapshot_budgets`` (an early stop fills the later budgets with the final model),
-    so every budget is evaluated from one run."""
+    so every budget is evaluated from one run.
+
+    ``should_stop`` is asked before every interaction: once it says yes, no further
+    interaction starts, the ones of the round already executed are still learned from
+    (``model.update``) and the run ends as ``stopped="cancelled"``. ``spent``: interactions
+    an earlier, interrupted run on these targets already executed (a resumed session; the
+    model has learned from them): they count against the budget and the step numbers
+    continue after them."""
     rng = rng or np.random.default_rng(cfg.seed)
     n = len(targets)
-    total = cfg.budget * n if strategy.explores else 0
+    total = max(0, cfg.budget * n - spent) if strategy.explores else 0
     round_size = cfg.round_size or max(1, math.ceil(n / 2))
     clouds = [world.observe(t) for t in targets]
     groups = [str(getattr(t, "category", "all")) for t in targets]
@@ -178,6 +187,9 @@ def explore(model: ExplorationModel, world: ExplorationWorld, targets: Sequence[
         means.append(float(np.mean(obj_mean)))
         if len(records) >= total:
             break
+        if should_stop is not None and should_stop():
+            stopped = "cancelled"
+            break
         if strategy.stops_at_bar:
             active = [i for i in active if obj_mean[i] <= cfg.sim_bar]
             if not active:
@@ -196,6 +208,9 @@ def explore(model: ExplorationModel, world: ExplorationWorld, targets: Sequence[
         rnd += 1
         executed: list[Executed] = []
         for a_obj, i in picks:
+            if executed and should_stop is not None and should_stop():
+                stopped = "cancelled"  # between interactions: learn from the executed ones
+                break
             obj = active[a_obj]
             action = cands[obj].action(clouds[obj], i, primitive)
             result = world.execute(targets[obj], action)
@@ -203,7 +218,7 @@ def explore(model: ExplorationModel, world: ExplorationWorld, targets: Sequence[
                 used[obj].add(int(cands[obj].source[i]))
             executed.append(Executed(clouds[obj], cands[obj], i, result))
             records.append(StepRecord(
-                step=len(records) + 1, round=rnd, group=groups[obj],
+                step=spent + len(records) + 1, round=rnd, group=groups[obj],
                 target=_name(targets[obj]), point=action.point.tolist(), up=action.up.tolist(),
                 forward=action.forward.tolist(), affordance=float(scored[obj].affordance[i]),
                 similarity=float(scored[obj].similarity[i]), mean_similarity=obj_mean[obj],
@@ -222,11 +237,14 @@ def explore(model: ExplorationModel, world: ExplorationWorld, targets: Sequence[
                 on_step(rec)
         log.info("round %d %s: %d interactions (%d successful), %d of %d spent, %d objects "
                  "active, mean similarity %.3f", rnd, strategy.name, len(executed),
-                 sum(e.result.success for e in executed), len(records), total, len(active),
+                 sum(e.result.success for e in executed), spent + len(records), spent + total,
+                 len(active),
                  means[-1])
         for b in cfg.snapshot_budgets:
-            if b not in snapshots and len(records) >= b * n:
+            if b not in snapshots and spent + len(records) >= b * n:
                 snapshots[b] = model.snapshot()
+        if stopped == "cancelled":
+            break
         touched = {id(e.cloud) for e in executed}
         for j, c in enumerate(clouds):  # the world decides whether the object changed
             if id(c) in touched:
