@@ -267,6 +267,45 @@ def test_record_only_remembers_without_fitting_and_the_next_update_fits_on_both(
     assert graph.call(graph.reset, Trigger.Request()).success
 
 
+def test_restore_reloads_a_sessions_checkpoint_and_its_recorded_interactions(graph):
+    """Resume (the planner's sessions): ``restore`` puts back the weights a session saved under
+    its ``checkpoint_name`` and makes the explored set exactly the interactions re-sent."""
+    assert graph.call(graph.reset, Trigger.Request()).success
+    msg = cloud_msg(seed=9)
+    sim = lambda r: cloud_to_arrays(r.maps[0].cloud, fields=("similarity",)  # noqa: E731
+                                    ).fields["similarity"]
+    acts = list(graph.call(graph.predict, predict_request([msg], num_best=3)
+                           ).maps[0].explore_actions[:3])
+    outs = [_outcome(True), _outcome(False), _outcome(True)]
+    saved = graph.call(graph.update, UpdateModel.Request(
+        cloud=msg, interactions=acts[:2], outcomes=outs[:2], category="door",
+        update_affordance=True, save_checkpoint=True, checkpoint_name="w2e_session_t.pt"))
+    assert saved.success and Path(saved.checkpoint_path).name == "w2e_session_t.pt"
+    at_save = sim(graph.call(graph.predict, predict_request([msg])))
+    # the node moves on (another session, or a restart: the configured weights)
+    assert graph.call(graph.update, UpdateModel.Request(
+        cloud=msg, interactions=[acts[2]], outcomes=[outs[2]], category="door",
+        update_affordance=True)).success
+    assert graph.call(graph.reset, Trigger.Request()).success
+    assert not np.allclose(sim(graph.call(graph.predict, predict_request([msg]))), at_save)
+    for k in range(2):  # what the planner re-sends from its log
+        res = graph.call(graph.update, UpdateModel.Request(
+            cloud=msg, interactions=[acts[k]], outcomes=[outs[k]], category="door",
+            update_affordance=True, record_only=True, restore=k == 0,
+            checkpoint_name="w2e_session_t.pt"))
+        assert res.success, res.message
+    np.testing.assert_allclose(sim(graph.call(graph.predict, predict_request([msg]))), at_save,
+                               atol=1e-6)
+    fit = graph.call(graph.update, UpdateModel.Request(
+        cloud=msg, interactions=[acts[2]], outcomes=[outs[2]], category="door",
+        update_affordance=True, save_checkpoint=True, checkpoint_name="w2e_session_t.pt"))
+    assert fit.success and load_model(fit.checkpoint_path, "cpu")[1]["explored"] == 3
+    bad = graph.call(graph.update, UpdateModel.Request(
+        cloud=msg, interactions=[acts[0]], outcomes=[outs[0]], checkpoint_name="../x.pt"))
+    assert not bad.success and "checkpoint_name" in bad.message
+    assert graph.call(graph.reset, Trigger.Request()).success
+
+
 def test_bad_updates_are_refused(graph):
     msg = cloud_msg(seed=8)
     act = graph.call(graph.predict, predict_request([msg])).maps[0].best_actions[0]

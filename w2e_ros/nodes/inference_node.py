@@ -6,8 +6,9 @@
   (the planner's exploration candidates).
 * ``update_model`` (w2e_msgs/UpdateModel): fine-tunes on executed interactions with the core's
   ``W2EExplorer.update`` (everything explored so far + replay of the training data when a
-  replay collection is configured) and saves the adapted checkpoint, so nothing learned is
-  lost if a node dies mid-exploration.
+  replay collection is configured) and saves the adapted checkpoint (also under the planner
+  session's ``checkpoint_name``), so nothing learned is lost if a node dies mid-exploration;
+  ``restore`` resumes a session: its checkpoint and the interactions re-sent from its log.
 * ``reset_model`` (std_srvs/Trigger): reload the checkpoints, forget the explored interactions.
 * ``affordance_map`` / ``similarity_map`` (sensor_msgs/PointCloud2, reliable + transient
   local): the last maps as heat-coloured clouds (``rgb``) with the raw ``affordance``,
@@ -364,6 +365,11 @@ class InferenceNode(Node):
         bases = {base_primitive(a.primitive) for a in actions}
         if len(bases) != 1:
             raise ValueError(f"interactions mix primitives {sorted(bases)}: one model per call")
+        name = req.checkpoint_name
+        if name and (Path(name).name != name or not name.endswith(".pt")):
+            raise ValueError(f"checkpoint_name {name!r}: a file name ending in .pt, no directory")
+        if req.restore:
+            self._restore(base_primitive(actions[0].primitive), name)
         served = self._served_for(actions[0].primitive)
         (cloud,) = self._read_clouds([req.cloud])
         ex = served.explorer
@@ -397,8 +403,28 @@ class InferenceNode(Node):
             meta = dict(served.meta, adapted_from=str(served.source),
                         explored=len(ex.explored), updates=served.updates,
                         last_category=req.category)
-            res.checkpoint_path = str(save_model(self.adapted_path(served.primitive),
-                                                 served.model, meta))
+            path = save_model(self.adapted_path(served.primitive), served.model, meta)
+            if name:  # the session's own file too, for a later restore
+                path = save_model(self.adapted_path(served.primitive).with_name(name),
+                                  served.model, meta)
+            res.checkpoint_path = str(path)
+
+    def _restore(self, primitive: str, checkpoint_name: str) -> None:
+        """Resume a session: the configured checkpoint (start and L2-SP anchor of the
+        fine-tuning), then the session's adapted weights when saved, no explored interaction."""
+        served = self._load(primitive)
+        path = self.adapted_path(primitive).with_name(checkpoint_name) if checkpoint_name \
+            else None
+        if path is not None and path.exists():
+            adapted, meta = load_model(path, self.device)
+            if meta.get("adapted_from") not in (None, str(served.source)):
+                raise ValueError(f"{path} was adapted from {meta['adapted_from']}, this node "
+                                 f"serves {served.source}: start a new session")
+            served.model.load_state_dict(adapted.state_dict())  # in place: the anchor stays
+            served.updates = int(meta.get("updates", 0))
+        self.served[primitive] = served
+        used = path if path is not None and path.exists() else served.source
+        self.get_logger().info(f"{primitive}: restored {used} for a resumed session")
 
     # --- reset_model ------------------------------------------------------------------------
     def on_reset(self, req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
