@@ -7,6 +7,8 @@ The same nodes, names and parameter file as ``w2e bringup`` (which is what runs 
     params_file:=<yaml>      default: share/w2e_ros/config/w2e_stack.yaml
     use_sim:=true|false      start the sim bridge (false: real camera + robot adapters)
     nodes:=a,b,c             subset of sim_bridge,segmentation,inference,executor,planner
+    respawn:=true|false      start a node again when it dies (as w2e bringup --respawn;
+                             launch_ros waits respawn_delay:=<s> each time, with no limit)
 
 Each node gets its own section of the YAML as a parameter dictionary, so the plain
 ``node_name:`` keys work under any namespace (what nav2 does with RewrittenYaml).
@@ -36,6 +38,8 @@ def _nodes(context, *args, **kwargs):
     namespace = LaunchConfiguration("namespace").perform(context)
     params_file = LaunchConfiguration("params_file").perform(context)
     use_sim = LaunchConfiguration("use_sim").perform(context).lower() in ("true", "1", "yes")
+    respawn = LaunchConfiguration("respawn").perform(context).lower() in ("true", "1", "yes")
+    respawn_delay = float(LaunchConfiguration("respawn_delay").perform(context))
     wanted = [n.strip() for n in LaunchConfiguration("nodes").perform(context).split(",")
               if n.strip()]
     unknown = [n for n in wanted if n not in NODES]
@@ -60,6 +64,8 @@ def _nodes(context, *args, **kwargs):
             parameters=[section],
             output="screen",
             emulate_tty=True,
+            respawn=respawn,
+            respawn_delay=respawn_delay,
         ))
     return actions
 
@@ -76,5 +82,9 @@ def generate_launch_description() -> LaunchDescription:
                               description="start the SAPIEN sim bridge as camera and robot"),
         DeclareLaunchArgument("nodes", default_value="",
                               description="comma-separated subset of nodes (default: all)"),
+        DeclareLaunchArgument("respawn", default_value="false",
+                              description="start a node again when its process dies"),
+        DeclareLaunchArgument("respawn_delay", default_value="1.0",
+                              description="seconds before a node is started again"),
         OpaqueFunction(function=_nodes),
     ])

@@ -4,6 +4,7 @@ once swallowed none of them: "unrecognized arguments")."""
 
 from __future__ import annotations
 
+import os
 import re
 import signal
 import subprocess
@@ -32,7 +33,8 @@ def test_w2e_bringup_help_lists_the_flags_of_the_bringup_module():
     module = subprocess.run([sys.executable, "-m", "w2e_ros.bringup", "--help"], env=env,
                             capture_output=True, text=True, timeout=60)
     assert module.returncode == 0, module.stderr
-    documented = {"--nodes", "--params", "--namespace", "--domain-id", "--log-dir", "--timeout"}
+    documented = {"--nodes", "--params", "--namespace", "--domain-id", "--log-dir", "--timeout",
+                  "--respawn", "--respawn-limit", "--respawn-delay"}
     assert documented <= _flags(cli.stdout), cli.stdout
     assert _flags(cli.stdout) == _flags(module.stdout)
 
@@ -84,3 +86,49 @@ def test_w2e_bringup_starts_the_chosen_nodes_in_a_namespace_on_a_domain(tmp_path
         stop_process(proc, group=False)
         reader.join(5)
     assert any(line.startswith("[executor]") for line in lines)
+
+
+@pytest.mark.slow
+def test_w2e_bringup_respawn_restarts_a_dead_node_up_to_the_limit(tmp_path):
+    """--respawn: a node killed is started again (logged, with its new pid); once it has been
+    restarted --respawn-limit times it stays dead, bringup says so and exits."""
+    proc = subprocess.Popen(
+        [W2E, "bringup", "--nodes", "executor", "--domain-id", str(pick_domain_id(23)),
+         "--log-dir", str(tmp_path / "log"), "--respawn", "--respawn-limit", "1",
+         "--respawn-delay", "0.2"],
+        env=ros_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
+    lines: list[str] = []
+    pids: list[int] = []
+    news = threading.Condition()
+
+    def pump() -> None:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            lines.append(line.rstrip("\n"))
+            m = re.search(r"node executor (?:is up|restarted) \(pid (\d+)\)", line)
+            with news:
+                if m:
+                    pids.append(int(m.group(1)))
+                news.notify_all()
+
+    def wait_for(pred, timeout: float) -> None:
+        with news:
+            assert news.wait_for(pred, timeout), "\n".join(lines)
+
+    reader = threading.Thread(target=pump, daemon=True)
+    reader.start()
+    try:
+        wait_for(lambda: len(pids) == 1, 90)
+        os.kill(pids[0], signal.SIGKILL)
+        wait_for(lambda: len(pids) == 2, 30)
+        assert "[bringup] node executor died (SIGKILL); restart 1 of 1 in 0.2 s" in lines
+        assert pids[1] != pids[0]
+        time.sleep(2.0)  # let it start, then it dies once too often
+        os.kill(pids[1], signal.SIGKILL)
+        assert proc.wait(30) == 1, "\n".join(lines)
+    finally:
+        stop_process(proc, group=False)
+        reader.join(5)
+    assert any("node executor died (SIGKILL); not restarted: it was restarted 1 times (limit 1)"
+               in x for x in lines), "\n".join(lines)
+    assert "[bringup] every node has exited (respawn limit reached)" in lines

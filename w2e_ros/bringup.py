@@ -5,11 +5,14 @@ Every node runs as its own process under this Python (the venv's), as
 with ``[name]``; its parameters are the YAML section named as the node names itself. The
 stack is up when every node's services, actions and topics are visible on the ROS graph; it
 is stopped with TERM, a wait, TERM again, then KILL, and the Fast DDS shared-memory files its
-processes leave are removed.
+processes leave are removed. With ``respawn`` a node process that exits on its own is started
+again (the same command), after a delay that doubles from ``respawn_delay`` up to
+``RESPAWN_MAX_DELAY`` s, at most ``respawn_limit`` times per node; each exit and restart is
+logged (``[bringup] node executor died (SIGKILL); restart 1 of 5 in 1.0 s``).
 
 Command line (also ``w2e bringup``)::
 
-    python -m w2e_ros.bringup --nodes sim_bridge executor --namespace w2e
+    python -m w2e_ros.bringup --nodes sim_bridge executor --namespace w2e --respawn
 
 Python (the integration tests and the demo)::
 
@@ -64,14 +67,27 @@ NODES: dict[str, NodeSpec] = {
         NodeSpec("executor", "executor", "w2e_ros.nodes.executor_node",
                  actions=("execute_interaction",)),
         NodeSpec("planner", "planner_node", "w2e_ros.nodes.planner_node",
-                 services=("explore", "manipulate")),
+                 services=("explore", "manipulate"), actions=("explore",)),
     )
 }
 """Every node of the stack, in start order (the planner needs all the others)."""
 
 
+RESPAWN_MAX_DELAY = 10.0  # s: the longest wait before a respawn
+
+
 class StackError(RuntimeError):
     """A node of the stack failed to start (its last output lines are in the message)."""
+
+
+def describe_exit(code: int | None) -> str:
+    """``exit code 1`` / ``SIGKILL`` for a Popen return code."""
+    if code is not None and code < 0:
+        try:
+            return signal.Signals(-code).name
+        except ValueError:
+            return f"signal {-code}"
+    return f"exit code {code}"
 
 
 def default_params() -> Path:
@@ -104,6 +120,7 @@ class _Proc:
         self.spec = spec
         self.popen = popen
         self.tail: collections.deque[str] = collections.deque(maxlen=40)
+        self.given_up = False  # respawn: died once too often, left dead (and said so once)
         self._thread = threading.Thread(target=self._pump, args=(output, lock), daemon=True)
         self._thread.start()
 
@@ -134,6 +151,9 @@ class Stack:
         output: TextIO | None = sys.stdout,
         ready_timeout: float = 120.0,
         extra_args: dict[str, list[str]] | None = None,
+        respawn: bool = False,
+        respawn_limit: int = 5,
+        respawn_delay: float = 1.0,
     ):
         names = list(nodes) if nodes else list(NODES)
         unknown = [n for n in names if n not in NODES]
@@ -148,8 +168,15 @@ class Stack:
         self.output = output
         self.ready_timeout = ready_timeout
         self.extra_args = extra_args or {}
+        self.respawn, self.respawn_limit = respawn, int(respawn_limit)
+        self.respawn_delay = float(respawn_delay)
+        self.respawns: dict[str, int] = {}  # node -> restarts so far
         self.procs: list[_Proc] = []
         self._lock = threading.Lock()
+        self._procs_lock = threading.Lock()  # self.procs: the respawn thread replaces entries
+        self._stopping = threading.Event()
+        self._watcher: threading.Thread | None = None
+        self._params_file: Path | None = None
         self._tmp: tempfile.TemporaryDirectory | None = None
         self._shm_before: set[Path] = set()
 
@@ -165,20 +192,63 @@ class Stack:
         """Start every node (in order) and, with ``wait``, block until all are up."""
         self._shm_before = shm_files()
         self._tmp = tempfile.TemporaryDirectory(prefix="w2e_bringup_")
-        params = namespaced_params(self.params, self.namespace, Path(self._tmp.name))
+        self._params_file = namespaced_params(self.params, self.namespace, Path(self._tmp.name))
+        self._stopping.clear()
         try:
             for spec in self.specs:
-                popen = subprocess.Popen(
-                    self.command(spec, params), env=self.env, stdin=subprocess.DEVNULL,
-                    stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1,
-                    start_new_session=True)
-                self.procs.append(_Proc(spec, popen, self.output, self._lock))
+                self.procs.append(self._spawn(spec))
             if wait:
                 self.wait_ready()
+            if self.respawn:
+                self._watcher = threading.Thread(target=self._watch, daemon=True,
+                                                 name="w2e_bringup_respawn")
+                self._watcher.start()
         except BaseException:
             self.stop()
             raise
         return self
+
+    def _spawn(self, spec: NodeSpec) -> _Proc:
+        assert self._params_file is not None
+        popen = subprocess.Popen(
+            self.command(spec, self._params_file), env=self.env, stdin=subprocess.DEVNULL,
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1,
+            start_new_session=True)
+        return _Proc(spec, popen, self.output, self._lock)
+
+    def _watch(self) -> None:
+        """Respawn: start a node again when its process exits on its own (backoff, limit)."""
+        due: dict[str, float] = {}  # node -> when to restart it
+        while not self._stopping.wait(0.2):
+            with self._procs_lock:
+                procs = list(enumerate(self.procs))
+            for i, proc in procs:
+                name = proc.spec.name
+                code = proc.popen.poll()
+                if code is None or name in due and time.monotonic() < due[name]:
+                    continue
+                n = self.respawns.get(name, 0)
+                if name not in due:  # just found dead
+                    proc.join()
+                    if n >= self.respawn_limit:
+                        if not proc.given_up:
+                            proc.given_up = True
+                            self._say(f"node {name} died ({describe_exit(code)}); not restarted: "
+                                      f"it was restarted {n} times (limit {self.respawn_limit})")
+                        continue
+                    delay = min(self.respawn_delay * 2 ** n, RESPAWN_MAX_DELAY)
+                    due[name] = time.monotonic() + delay
+                    self._say(f"node {name} died ({describe_exit(code)}); restart {n + 1} of "
+                              f"{self.respawn_limit} in {delay:.1f} s")
+                    continue
+                with self._procs_lock:
+                    if self._stopping.is_set():
+                        return
+                    new = self._spawn(proc.spec)
+                    self.procs[i] = new
+                due.pop(name)
+                self.respawns[name] = n + 1
+                self._say(f"node {name} restarted (pid {new.popen.pid})")
 
     def wait_ready(self, timeout: float | None = None) -> None:
         """Block until every node's services, actions and topics are on the graph."""
@@ -191,7 +261,8 @@ class Stack:
         rclpy.init(context=ctx, domain_id=int(self.env.get("ROS_DOMAIN_ID", "0")))
         probe = Node("w2e_bringup_probe", context=ctx, start_parameter_services=False)
         try:
-            pending = {p.spec.name: p for p in self.procs}
+            with self._procs_lock:
+                pending = {p.spec.name: p for p in self.procs}
             deadline = time.monotonic() + timeout
             while pending:
                 for name, proc in list(pending.items()):
@@ -203,7 +274,7 @@ class Stack:
                             f"starting; its last output:\n  {tail}")
                     if self._is_up(probe, proc.spec):
                         pending.pop(name)
-                        self._say(f"node {name} is up")
+                        self._say(f"node {name} is up (pid {proc.popen.pid})")
                 if not pending:
                     break
                 if time.monotonic() > deadline:
@@ -232,15 +303,31 @@ class Stack:
 
     def alive(self) -> dict[str, bool]:
         """Which nodes are still running."""
-        return {p.spec.name: p.popen.poll() is None for p in self.procs}
+        with self._procs_lock:
+            return {p.spec.name: p.popen.poll() is None for p in self.procs}
+
+    def pid(self, name: str) -> int:
+        """The process id of node ``name`` now (a respawned node has a new one)."""
+        with self._procs_lock:
+            return next(p.popen.pid for p in self.procs if p.spec.name == name)
+
+    def running(self) -> bool:
+        """Some node runs, or will be respawned."""
+        with self._procs_lock:
+            procs = list(self.procs)
+        return any(p.popen.poll() is None or (self.respawn and not p.given_up) for p in procs)
 
     def stop(self, timeout: float = 5.0) -> None:
         """Stop every node (reverse order, TERM -> TERM -> KILL) and clean shared memory."""
+        self._stopping.set()
+        if self._watcher is not None:
+            self._watcher.join(timeout=5.0)
+            self._watcher = None
         for proc in reversed(self.procs):
             code = stop_process(proc.popen, timeout=timeout)
             proc.join()
             if code not in (0, None, -signal.SIGTERM):
-                self._say(f"node {proc.spec.name} exited with code {code}")
+                self._say(f"node {proc.spec.name} exited ({describe_exit(code)})")
         self.procs.clear()
         clean_shm(self._shm_before)
         if self._tmp is not None:
@@ -272,6 +359,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID for the nodes")
     p.add_argument("--log-dir", default=None, help="ROS_LOG_DIR for the nodes")
     p.add_argument("--timeout", type=float, default=120.0, help="seconds to wait for start-up")
+    p.add_argument("--respawn", action="store_true",
+                   help="start a node again when its process dies (backoff, limit; logged)")
+    p.add_argument("--respawn-limit", type=int, default=5,
+                   help="most restarts per node with --respawn (default 5)")
+    p.add_argument("--respawn-delay", type=float, default=1.0,
+                   help="seconds before the first restart of a node; doubles with each one, "
+                        f"up to {RESPAWN_MAX_DELAY:.0f} s (default 1)")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -292,13 +386,15 @@ def run(a: argparse.Namespace) -> int:
 
     signal.signal(signal.SIGTERM, on_term)
     stack = Stack(nodes=a.nodes, params=a.params, namespace=a.namespace, env=env,
-                  ready_timeout=a.timeout)
+                  ready_timeout=a.timeout, respawn=a.respawn, respawn_limit=a.respawn_limit,
+                  respawn_delay=a.respawn_delay)
     try:
         stack.start()
-        stack._say("stack is up; Ctrl-C stops it")
-        while any(stack.alive().values()):
+        stack._say("stack is up" + (" (nodes that die are restarted)" if a.respawn else "") +
+                   "; Ctrl-C stops it")
+        while stack.running():
             time.sleep(0.5)
-        stack._say("every node has exited")
+        stack._say("every node has exited" + (" (respawn limit reached)" if a.respawn else ""))
         return 1
     except KeyboardInterrupt:
         return 0
