@@ -66,7 +66,8 @@ def stack(tmp_path_factory):
                       "-p", f"adapted_dir:={tmp / 'adapted'}", "-p", "finetune_steps:=2"],
         "planner": ["-p", "points_per_object:=128", "-p", "execute_timeout_s:=30.0",
                     "-p", "observe_timeout_s:=40.0",  # a loaded CI machine can stall frames
-                    "-p", "connect_timeout_s:=3.0"],
+                    "-p", "connect_timeout_s:=3.0",
+                    "-p", f"exploration_log_dir:={tmp / 'exploration'}"],
     }
     with Stack(env=env, output=out, ready_timeout=120.0, extra_args=extra) as s:
         client = W2EClient(domain_id=domain)

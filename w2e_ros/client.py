@@ -77,6 +77,7 @@ class ExploreResult:
     checkpoint_path: str = ""
     steps: list[Step] = field(default_factory=list)
     seconds: float = 0.0
+    resumed_from: int = 0  # interactions an interrupted run of the session had recorded
 
 
 @dataclass
@@ -212,12 +213,14 @@ class W2EClient:
     def explore(self, category: str, instances: Iterable[int] = (), primitive: str = "pull",
                 budget: int = 5, bar: float = 0.9, object_ids: Iterable[int] = (),
                 timeout: float = 1800.0,
-                on_progress: Callable[[Step], None] | None = None) -> ExploreResult:
+                on_progress: Callable[[Step], None] | None = None,
+                session: str = "") -> ExploreResult:
         """Few-shot exploration of ``category`` on ``instances`` (loaded into the simulated
-        scene) and/or scene ``object_ids``; ``on_progress`` sees every step."""
+        scene) and/or scene ``object_ids``; ``on_progress`` sees every step. A ``session``
+        ("": "default") whose last run did not finish is continued (README: resume)."""
         req = Explore.Request(category=category, instances=[int(i) for i in instances],
                               object_ids=[int(i) for i in object_ids], primitive=primitive,
-                              budget=int(budget), similarity_bar=float(bar))
+                              budget=int(budget), similarity_bar=float(bar), session=session)
         self._steps, self._on_progress = [], on_progress
         t0 = time.perf_counter()
         try:
@@ -227,7 +230,8 @@ class W2EClient:
         time.sleep(0.1)  # the last progress message travels beside the response
         return ExploreResult(r.success, r.message, int(r.interactions_used), int(r.successes),
                              float(r.final_mean_similarity), bool(r.reached_similarity_bar),
-                             r.checkpoint_path, list(self._steps), time.perf_counter() - t0)
+                             r.checkpoint_path, list(self._steps), time.perf_counter() - t0,
+                             int(r.resumed_from))
 
     def manipulate(self, category: str = "", instances: Iterable[int] = (),
                    primitive: str = "pull", object_ids: Iterable[int] = (),

@@ -98,7 +98,8 @@ def run(a: argparse.Namespace) -> int:
     domain = a.domain_id if a.domain_id is not None else pick_domain_id(5)
     env = ros_env(domain_id=domain, log_dir=out / "ros_log")
     extra = {"inference": ["-p", f"{a.primitive}_checkpoint:={ckpt.resolve()}",
-                           "-p", f"adapted_dir:={(out / 'adapted').resolve()}"]}
+                           "-p", f"adapted_dir:={(out / 'adapted').resolve()}"],
+             "planner": ["-p", f"exploration_log_dir:={(out / 'exploration').resolve()}"]}
     print(f"[demo] {a.category} ({a.primitive}), model {ckpt}; test {test}, explore {explore}")
     t_all = time.perf_counter()
     with Stack(env=env, extra_args=extra, output=None if a.quiet_nodes else sys.stdout,

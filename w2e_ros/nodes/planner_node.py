@@ -1,33 +1,43 @@
-"""Planner node: the user-facing ``explore`` and ``manipulate`` services.
+"""Planner node: the user-facing ``explore`` (service and action) and ``manipulate``.
 
 ``explore`` runs THE few-shot loop of the core (``w2e_ros.core.explore.explore``) with two
 ROS-backed halves: :class:`RosModel` (the inference node's ``predict_maps`` / ``update_model``)
 and :class:`RosWorld` (object clouds from the segmentation node's ``objects``, scenes loaded
 through the bridge's ``load_scene``, interactions run by the executor's
-``execute_interaction`` action). ``manipulate`` executes, per object, the action with the
-highest predicted affordance. Progress goes out on ``exploration_progress`` after every step.
+``execute_interaction`` action). The service and the action share one implementation
+(:meth:`PlannerNode.run_explore`); the action adds feedback per interaction and cancel between
+interactions. ``manipulate`` executes, per object, the action with the highest predicted
+affordance. Progress goes out on ``exploration_progress`` after every step.
+
+Every executed interaction is appended to the session's log on disk
+(``w2e_ros.core.session_log``) before it is learned from, and the inference node saves the
+session's checkpoint after every update; an explore call for a session whose last run did not
+finish restores both in the inference node and continues where the run stopped.
 
 Every wait on another node has a timeout (parameters): a dead inference or executor node
-turns into success=false with a message, never a hung service; the inference node saves its
-checkpoint after every update, so what was learned before the failure is kept.
+turns into success=false with a message, never a hung service.
 """
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
-from rclpy.action import ActionClient
+from rclpy.action import ActionClient, ActionServer, CancelResponse, GoalResponse
+from rclpy.action.server import ServerGoalHandle
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
 from rclpy.task import Future
 from rclpy.time import Time
 from sensor_msgs.msg import PointCloud2
 from w2e_msgs.action import ExecuteInteraction
+from w2e_msgs.action import Explore as ExploreAction
 from w2e_msgs.msg import (
     ExplorationProgress,
     Interaction,
@@ -41,6 +51,7 @@ from w2e_ros.core.categories import load_categories
 from w2e_ros.core.config import ExploreConfig
 from w2e_ros.core.explore import Candidates, Executed, StepRecord, explore
 from w2e_ros.core.primitives import PRIMITIVES, Action, TrialResult
+from w2e_ros.core.session_log import SessionRun, open_session
 from w2e_ros.core.sim_world import stable_seed
 from w2e_ros.core.strategies import Scored, get_strategy
 from w2e_ros.ros.conversions import (
@@ -49,7 +60,7 @@ from w2e_ros.ros.conversions import (
     trial_result_to_outcome,
 )
 from w2e_ros.ros.params import declare_typed_parameters, describe, param
-from w2e_ros.ros.pointcloud import cloud_to_arrays
+from w2e_ros.ros.pointcloud import arrays_to_cloud, cloud_to_arrays
 from w2e_ros.ros.qos import LATCHED_QOS, RELIABLE_QOS
 from w2e_ros.ros.spin import run_node
 
@@ -82,6 +93,20 @@ class PlannerSettings:
     fresh_after_execute: bool = param(True, "after an interaction, observe the object in a "
                                       "camera frame taken after it (the part may have moved)")
     seed: int = param(0, "seed of the candidate sampling and of the scene start states")
+    exploration_log_dir: str = param("", "directory of the exploration sessions' logs (every "
+                                     "executed interaction; '': $XDG_DATA_HOME/w2e/exploration,"
+                                     " ~/.local/share/w2e/exploration)")
+    resume: bool = param(True, "an explore call for a session whose last run did not finish "
+                         "continues that run (false: every call starts a new run)")
+
+
+def default_log_dir() -> Path:
+    """$XDG_DATA_HOME/w2e/exploration (~/.local/share/w2e/exploration)."""
+    data = os.environ.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
+    return Path(data) / "w2e" / "exploration"
+
+
+BUSY = "busy: another explore/manipulate is running"
 
 
 class StackError(RuntimeError):
@@ -121,12 +146,14 @@ class ObservedCloud:
 class RosWorld:
     """``ExplorationWorld`` over the stack: targets are scene object ids."""
 
-    def __init__(self, node: PlannerNode) -> None:
+    def __init__(self, node: PlannerNode, run: SessionRun | None = None,
+                 instance_of: dict[int, int] | None = None) -> None:
         self.node = node
         self.s = node.settings
+        self.run = run  # every executed interaction is appended here before it is used
+        self.instance_of = instance_of or {}  # object id -> category instance (logged)
         self.seen_after: dict[int, Time] = {}  # object -> earliest acceptable frame stamp
-        self.last_outcome: InteractionOutcome | None = None
-        self.executed = 0
+        self.outcomes: list[InteractionOutcome] = []  # of this call, in execution order
         self.last_cloud: dict[int, ObservedCloud] = {}
 
     def observe(self, target: int) -> ObservedCloud:
@@ -148,19 +175,25 @@ class RosWorld:
 
     def execute(self, target: int, action: Action) -> TrialResult:
         outcome = self.node.execute(action_to_interaction(action, object_id=int(target)))
-        self.last_outcome = outcome
-        self.executed += 1
+        self.outcomes.append(outcome)
         if self.s.fresh_after_execute:
             self.seen_after[int(target)] = self.node.get_clock().now()
-        return outcome_to_trial_result(outcome)
+        result = outcome_to_trial_result(outcome)
+        if self.run is not None:  # on disk (fsync) before the loop learns from it
+            cloud = self.last_cloud[int(target)]  # the cloud the action was chosen on
+            self.run.append(int(target), self.instance_of.get(int(target)), action, result,
+                            cloud.points, cloud.normals, cloud.msg.header.frame_id)
+        return result
 
 
 class RosModel:
     """``ExplorationModel`` over the inference node: scores and updates go through services."""
 
-    def __init__(self, node: PlannerNode, primitive: str, category: str) -> None:
+    def __init__(self, node: PlannerNode, primitive: str, category: str,
+                 run: SessionRun | None = None) -> None:
         self.node, self.primitive, self.category = node, primitive, category
-        self.checkpoint_path = ""
+        self.run = run  # the session run: its checkpoint name, its updates recorded
+        self.checkpoint_path = run.checkpoint if run is not None else ""
         self.last_mean: float | None = None
         self.on_scored: list = []  # callbacks(mean similarity), after every score
 
@@ -191,19 +224,48 @@ class RosModel:
     def update(self, executed: Sequence[Executed]) -> dict[str, float]:
         """One update_model call per executed interaction: all but the last only record, the
         last fits on everything explored and saves the checkpoint (one fit per round)."""
-        stats: dict[str, float] = {}
-        for k, e in enumerate(executed):
+        requests = []
+        for e in executed:
             action = e.candidates.action(e.cloud, e.index, self.primitive)
-            req = UpdateModel.Request(
-                cloud=e.cloud.msg,
-                interactions=[action_to_interaction(action, e.cloud.object_id)],
-                outcomes=[trial_result_to_outcome(e.result)], category=self.category,
-                update_affordance=e.update_affordance, steps=self.node.settings.update_steps,
-                save_checkpoint=k == len(executed) - 1, record_only=k < len(executed) - 1)
+            requests.append(UpdateModel.Request(
+                cloud=e.cloud.msg, interactions=[action_to_interaction(action, e.cloud.object_id)],
+                outcomes=[trial_result_to_outcome(e.result)],
+                update_affordance=e.update_affordance))
+        return self._send(requests, fit=True)
+
+    def restore(self) -> None:
+        """Resume the session run in the inference node: the run's checkpoint and every
+        interaction recorded (sent again, the first request with ``restore``); a fit when the
+        run recorded interactions after its last update (it was cut mid-round)."""
+        run = self.run
+        assert run is not None
+        requests = []
+        for rec in run.interactions:
+            points, normals = rec.cloud(run.path)
+            requests.append(UpdateModel.Request(
+                cloud=arrays_to_cloud(points, normals, frame_id=rec.frame_id),
+                interactions=[action_to_interaction(rec.action, rec.object_id)],
+                outcomes=[trial_result_to_outcome(rec.result)], update_affordance=True))
+        if requests:
+            requests[0].restore = True
+            self._send(requests, fit=run.fitted < run.count)
+
+    def _send(self, requests: list[UpdateModel.Request], fit: bool) -> dict[str, float]:
+        """update_model for each request: all but the last only record; the last fits on
+        everything explored (``fit``) and saves the checkpoint, recorded in the session log."""
+        stats: dict[str, float] = {}
+        for k, req in enumerate(requests):
+            last = k == len(requests) - 1
+            req.category, req.steps = self.category, self.node.settings.update_steps
+            req.record_only = not (last and fit)
+            req.save_checkpoint = last and fit
+            req.checkpoint_name = self.run.checkpoint_name if self.run is not None else ""
             res = self.node.call(self.node.update_cli, req, "update_model")
             self.checkpoint_path = res.checkpoint_path or self.checkpoint_path
             stats = {"loss": res.loss, "loss_aff": res.affordance_loss,
                      "loss_sim": res.similarity_loss}
+        if fit and self.run is not None:
+            self.run.record_update(self.checkpoint_path, stats)
         return stats
 
     def snapshot(self) -> str:
@@ -220,6 +282,7 @@ class _Progress:
     primitive: str
     records: list[StepRecord] = field(default_factory=list)
     pending: ExplorationProgress | None = None
+    feedback: Callable[[ExplorationProgress], None] | None = None  # the action's, per step
 
 
 class PlannerNode(Node):
@@ -229,6 +292,8 @@ class PlannerNode(Node):
         super().__init__("planner_node", **kwargs)
         self.settings = declare_typed_parameters(self, PlannerSettings)
         get_strategy(self.settings.strategy)  # fail at start-up on a typo
+        self.log_dir = (Path(self.settings.exploration_log_dir).expanduser()
+                        if self.settings.exploration_log_dir else default_log_dir())
         self.busy = threading.Lock()
         self.objects_cv = threading.Condition()
         self.latest_objects: SegmentedObjects | None = None
@@ -249,6 +314,10 @@ class PlannerNode(Node):
         self.progress_pub = self.create_publisher(ExplorationProgress, "exploration_progress",
                                                   RELIABLE_QOS)
         self.create_service(Explore, "explore", self.on_explore, callback_group=self.user_group)
+        self.explore_action = ActionServer(
+            self, ExploreAction, "explore", execute_callback=self.on_explore_execute,
+            goal_callback=self.on_explore_goal, cancel_callback=self.on_explore_cancel,
+            callback_group=self.user_group)
         self.create_service(Manipulate, "manipulate", self.on_manipulate,
                             callback_group=self.user_group)
         self.get_logger().info(f"planner ready; {describe(self.settings)}")
@@ -381,11 +450,51 @@ class PlannerNode(Node):
                              f"{', '.join(PRIMITIVES)}")
 
     def on_explore(self, req: Explore.Request, res: Explore.Response) -> Explore.Response:
+        """The explore service: the loop, answered when it ends."""
+        self.run_explore(req, res)
+        return res
+
+    def on_explore_goal(self, goal: ExploreAction.Goal) -> GoalResponse:
+        """One goal at a time: rejected while an explore / manipulate runs (the service's
+        "busy"; a goal that loses a race for the lock is aborted with that message)."""
+        if self.busy.locked():
+            self.get_logger().warning(f"explore goal rejected: {BUSY}")
+            return GoalResponse.REJECT
+        return GoalResponse.ACCEPT
+
+    def on_explore_cancel(self, handle: ServerGoalHandle) -> CancelResponse:
+        self.get_logger().info("explore goal: cancel requested, stopping before the next "
+                               "interaction")
+        return CancelResponse.ACCEPT
+
+    def on_explore_execute(self, handle: ServerGoalHandle) -> ExploreAction.Result:
+        """The explore action: the service's loop, feedback per interaction, cancel between
+        interactions (what was executed stays recorded and learned from)."""
+        result = ExploreAction.Result()
+        stopped = self.run_explore(
+            handle.request, result, should_stop=lambda: handle.is_cancel_requested,
+            feedback=lambda m: handle.publish_feedback(ExploreAction.Feedback(progress=m)))
+        if stopped == "cancelled":
+            handle.canceled()
+        elif result.success:
+            handle.succeed()
+        else:
+            handle.abort()
+        return result
+
+    def run_explore(self, req: Explore.Request | ExploreAction.Goal,
+                    res: Explore.Response | ExploreAction.Result,
+                    should_stop: Callable[[], bool] | None = None,
+                    feedback: Callable[[ExplorationProgress], None] | None = None) -> str:
+        """THE explore implementation of the service and the action: fills ``res``, returns
+        how the loop stopped ("budget", "bar", "exhausted", "cancelled"; "busy" / "error")."""
         if not self.busy.acquire(blocking=False):
-            res.success, res.message = False, "busy: another explore/manipulate is running"
-            return res
-        prog = _Progress(int(req.budget), req.category, req.primitive)  # x objects, below
-        model = None
+            res.success, res.message = False, BUSY
+            return "busy"
+        prog = _Progress(int(req.budget), req.category, req.primitive, feedback=feedback)
+        spent, stopped = 0, "error"
+        model: RosModel | None = None
+        run: SessionRun | None = None  # the session's run, once this call has started it
         t0 = time.perf_counter()
         try:
             s = self.settings
@@ -401,13 +510,27 @@ class PlannerNode(Node):
             bar = float(req.similarity_bar) or s.default_bar
             if not 0.0 < bar <= 1.0:
                 raise ValueError(f"similarity_bar must be in (0, 1], got {bar}")
+            session = open_session(self.log_dir, req.session, req.category, req.primitive,
+                                   resume=s.resume)
             ids, newer = self._targets(req.category, req.object_ids, req.instances)
+            loaded = ids[len(ids) - len(req.instances):] if len(req.instances) else []
+            instance_of = {oid: int(i) for oid, i in zip(loaded, req.instances, strict=True)}
             ids, missing = self.visible(ids, newer)
             prog.budget = int(req.budget) * len(ids)  # interactions in all
-            world = RosWorld(self)
+            run = session
+            spent = run.start({
+                "category": req.category, "instances": [int(i) for i in req.instances],
+                "object_ids": [int(i) for i in req.object_ids], "primitive": req.primitive,
+                "budget": int(req.budget), "similarity_bar": bar, "strategy": s.strategy,
+                "objects": ids, "seed": s.seed})
+            world = RosWorld(self, run, instance_of)
             for i in ids:
                 world.seen_after[i] = newer
-            model = RosModel(self, req.primitive, req.category)
+            model = RosModel(self, req.primitive, req.category, run)
+            if spent:
+                self.get_logger().info(f"explore: resuming {run.path} after {spent} recorded "
+                                       f"interaction(s) ({run.fitted} learned from)")
+                model.restore()
             model.on_scored.append(lambda mean: self._flush_progress(prog, mean))
             cfg = ExploreConfig(budget=int(req.budget), sim_bar=bar,
                                 points_per_object=s.points_per_object,
@@ -416,42 +539,59 @@ class PlannerNode(Node):
 
             def on_step(rec: StepRecord) -> None:
                 prog.records.append(rec)
-                prog.pending = self._progress_msg(prog, rec, world.last_outcome)
+                prog.pending = self._progress_msg(prog, rec, world.outcomes[rec.step - spent - 1])
 
             self.get_logger().info(f"explore {req.category or 'scene'} objects {ids} "
-                                   f"({req.primitive}, budget {req.budget}, bar {bar})")
+                                   f"({req.primitive}, budget {req.budget}, bar {bar}; "
+                                   f"{run.path})")
             result = explore(model, world, ids, get_strategy(s.strategy), cfg, req.primitive,
-                             rng=np.random.default_rng(s.seed), on_step=on_step)
-            res.success = True
-            res.reached_similarity_bar = result.stopped == "bar"
+                             rng=np.random.default_rng([s.seed, spent]), on_step=on_step,
+                             should_stop=should_stop, spent=spent)
+            stopped = result.stopped
+            res.success = stopped != "cancelled"
+            res.reached_similarity_bar = stopped == "bar"
             res.final_mean_similarity = float(result.mean_similarity[-1])
-            stop = "reached the bar" if res.reached_similarity_bar else "spent the budget"
-            res.message = (f"{len(result.steps)} interaction(s) on {len(ids)} object(s), "
-                           f"{sum(r.success for r in result.steps)} successful; {stop} "
-                           f"(mean similarity {res.final_mean_similarity:.3f}) in "
-                           f"{time.perf_counter() - t0:.1f} s" +
-                           (f"; objects {missing} not seen by the segmentation, skipped"
-                            if missing else ""))
+            done = (f"{len(result.steps)} interaction(s)" +
+                    (f" after the {spent} recorded by an interrupted run" if spent else "") +
+                    f" on {len(ids)} object(s), {run.successes} of {run.count} successful")
+            if stopped == "cancelled":
+                res.message = (f"cancelled after {done}; what was executed is recorded and "
+                               "learned from (checkpoint_path), the next explore of this "
+                               "session continues")
+            else:
+                stop = {"bar": "reached the bar", "exhausted": "no candidate left"}.get(
+                    stopped, "spent the budget")
+                res.message = f"{done}; {stop}"
+            res.message += (f" (mean similarity {res.final_mean_similarity:.3f}) in "
+                            f"{time.perf_counter() - t0:.1f} s" +
+                            (f"; objects {missing} not seen by the segmentation, skipped"
+                             if missing else ""))
         except (ValueError, StackError) as exc:
             res.success = False
             res.message = str(exc)
-            if prog.records:
-                res.message += (f" (after {len(prog.records)} interaction(s); the model "
-                                "learned so far is in checkpoint_path)")
+            if run is not None and run.count:
+                res.message += (f" (after {run.count} interaction(s), recorded in {run.path}: "
+                                "the next explore of this session continues)")
         except Exception as exc:  # noqa: BLE001 - a request must not kill the node
             res.success, res.message = False, f"internal error: {type(exc).__name__}: {exc}"
             self.get_logger().error(f"explore failed: {exc!r}")
         finally:
             self._flush_progress(prog, None)
+            if run is not None:
+                try:
+                    run.end(stopped, complete=res.success, message=res.message)
+                except OSError as exc:
+                    self.get_logger().error(f"explore: cannot write {run.path}: {exc}")
             self.busy.release()
-        res.interactions_used = len(prog.records)
-        res.successes = sum(bool(r.success) for r in prog.records)
+        res.interactions_used = run.count if run is not None else 0
+        res.successes = run.successes if run is not None else 0
+        res.resumed_from = spent
         res.checkpoint_path = model.checkpoint_path if model else ""
         if res.success:
             self.get_logger().info(f"explore: {res.message}")
         else:
             self.get_logger().warning(f"explore refused/failed: {res.message}")
-        return res
+        return stopped
 
     def _progress_msg(self, prog: _Progress, rec: StepRecord,
                       outcome: InteractionOutcome | None) -> ExplorationProgress:
@@ -477,11 +617,13 @@ class PlannerNode(Node):
             msg.mean_similarity = float(mean_after)
         msg.header.stamp = self.get_clock().now().to_msg()
         self.progress_pub.publish(msg)
+        if prog.feedback is not None:
+            prog.feedback(msg)
 
     def on_manipulate(self, req: Manipulate.Request,
                       res: Manipulate.Response) -> Manipulate.Response:
         if not self.busy.acquire(blocking=False):
-            res.success, res.message = False, "busy: another explore/manipulate is running"
+            res.success, res.message = False, BUSY
             return res
         t0 = time.perf_counter()
         try:
