@@ -15,6 +15,13 @@ import sapien
 
 from sim_bridge.geometry import frame_from_x, make_pose, pose_to_sapien
 from sim_bridge.objects.model import ObjectModel
+from w2e_ros.core.primitives import (  # the hand's shapes belong to the contract
+    FINGER_HALF,
+    FINGER_JOINT_Z,
+    FINGER_LENGTH,
+    FINGER_MAX,
+    PALM_HALF,
+)
 
 OBJECT_GROUPS = [1, 2, 0, 0]  # contact type 1, collides with type 2 (the gripper)
 GRIPPER_GROUPS = [2, 1, 0, 0]
@@ -137,10 +144,6 @@ def build_object(
 
 
 # ---------------------------------------------------------------- flying gripper -----
-FINGER_JOINT_Z = 0.0584  # finger joints ahead of the wrist along `up` (Panda hand)
-FINGER_LENGTH = 0.055  # fingertips ~0.113 m ahead of the wrist
-FINGER_MAX = 0.04
-PALM_HALF = (0.03, 0.1, 0.023)  # forward, left, up
 DRIVE_STIFFNESS = 1e5
 DRIVE_DAMPING = 4e3
 FINGER_STIFFNESS = 3e3
@@ -219,9 +222,9 @@ def build_gripper(
     for side, name in ((1.0, "finger_left"), (-1.0, "finger_right")):
         comp = new_link(hand, name)
         finger = P.PhysxCollisionShapeBox(
-            half_size=np.array([0.01, 0.01, FINGER_LENGTH / 2], np.float32), material=material
+            half_size=np.array([*FINGER_HALF, FINGER_LENGTH / 2], np.float32), material=material
         )
-        finger.local_pose = sapien.Pose([0, side * 0.01, FINGER_LENGTH / 2])
+        finger.local_pose = sapien.Pose([0, side * FINGER_HALF[1], FINGER_LENGTH / 2])
         finger.set_collision_groups(GRIPPER_GROUPS)
         finger.set_density(300.0)
         comp.attach(finger)

@@ -9,6 +9,7 @@ from synthetic import Cloud, RuleWorld, synthetic_data
 
 from w2e_ros.core.config import ExploreConfig, ModelConfig
 from w2e_ros.core.explore import Executed, explore, sample_candidates
+from w2e_ros.core.feasibility import approach_clear
 from w2e_ros.core.finetune import W2EExplorer
 from w2e_ros.core.model import W2EModel
 from w2e_ros.core.primitives import TrialResult
@@ -242,6 +243,33 @@ def test_a_resumed_run_counts_the_interactions_already_spent(novel):
     model, world = FakeModel([0.0] * 3, [0.0] * 3), TaggedWorld(novel)
     res = explore(model, world, [0, 1, 2], get_strategy("random"), cfg, "push", spent=6)
     assert res.stopped == "budget" and res.steps == [] and world.executed == []
+
+
+def test_check_approach_drops_the_candidates_whose_approach_runs_into_the_cloud(novel):
+    """check_approach (on in the planner): the loop draws the same candidates, drops those
+    whose approach runs into the object's cloud before scoring, and executes only clear ones."""
+    seen, executed = {}, {}
+    for check in (False, True):
+        model, world = FakeModel([0.0] * 3, [0.0] * 3), TaggedWorld(novel)
+        cfg = _fake_cfg(budget=2, round_size=3, per_object_per_round=1, points_per_object=32,
+                        dirs_per_point=4, check_approach=check)
+        res = explore(model, world, [0, 1, 2], get_strategy("similarity"), cfg, "pull",
+                      rng=np.random.default_rng(0))
+        assert res.stopped == "budget" and len(res.steps) == 6
+        seen[check], executed[check] = [c for c, _ in model.seen], world.executed
+    dropped = 0
+    for off, on in zip(seen[False], seen[True], strict=True):  # rounds
+        for obj, (a, b) in enumerate(zip(off, on, strict=True)):
+            pts = novel.points[obj]
+            clear = approach_clear(pts, pts[a.point_index], a.up, a.forward, "pull")
+            np.testing.assert_array_equal(b.point_index, a.point_index[clear])
+            np.testing.assert_array_equal(b.up, a.up[clear])
+            dropped += int((~clear).sum())
+    assert dropped > 0
+    assert all(approach_clear(novel.points[t], a.point, a.up, a.forward, "pull")[0]
+               for t, a in executed[True])
+    assert not all(approach_clear(novel.points[t], a.point, a.up, a.forward, "pull")[0]
+                   for t, a in executed[False])
 
 
 def test_oracle_executes_the_pool_candidates_the_model_gets_most_wrong(novel):

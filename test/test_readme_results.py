@@ -25,3 +25,9 @@ def test_every_linked_image_and_table_is_tracked_by_git():
                                  text=True).stdout.split())
     missing = [p for p in links if p not in tracked]
     assert not missing, f"README links files git does not track: {missing}"
+
+
+def test_readme_approach_check_block_matches_the_committed_json():
+    r = subprocess.run([sys.executable, str(ROOT / "bench" / "approach_check.py"), "--readme",
+                        "--check"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr

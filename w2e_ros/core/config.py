@@ -99,6 +99,8 @@ class ExploreConfig:
     points_per_object: int = 256  # candidate contact points per object and round
     dirs_per_point: int = 8  # candidate (direction, orientation) per point
     use_mask: bool = True  # candidates favour movable points when the cloud has a mask (sim)
+    check_approach: bool = False  # drop candidates whose approach runs into the observed
+    # cloud (core.feasibility); off keeps the paper benchmark as it was, the planner turns it on
     oracle_pool: int = 24  # oracle: hindsight-labelled candidates per object
     # fine-tuning after each round: on ALL explored interactions (+ flipped negatives,
     # class-balanced) and a replay of the training data, until the fit levels off

@@ -25,6 +25,7 @@ import numpy as np
 
 from w2e_ros.core.config import ExploreConfig
 from w2e_ros.core.data import InteractionData
+from w2e_ros.core.feasibility import DEFAULT_CHECK, ApproachCheck, approach_clear
 from w2e_ros.core.finetune import W2EExplorer
 from w2e_ros.core.model import W2EModel
 from w2e_ros.core.primitives import Action, TrialResult
@@ -65,6 +66,20 @@ def sample_candidates(cloud: CloudLike, num_points: int, dirs_per_point: int,
     p = Proposer(cloud.points, cloud.normals, mask if mask is not None and np.any(mask)
                  else None, proposal).sample(num_points, dirs_per_point, rng)
     return Candidates(p.point_index, p.up, p.forward)
+
+
+def clear_candidates(cloud: CloudLike, cands: Candidates, primitive: str,
+                     check: ApproachCheck = DEFAULT_CHECK) -> Candidates:
+    """The candidates whose approach does not run into the observed cloud
+    (:mod:`w2e_ros.core.feasibility`), in their order; ``source`` keeps pointing into the
+    pool they came from."""
+    pts = np.asarray(cloud.points)
+    if not len(cands):
+        return cands
+    keep = np.flatnonzero(approach_clear(pts, pts[cands.point_index], cands.up, cands.forward,
+                                         primitive, check))
+    return Candidates(cands.point_index[keep], cands.up[keep], cands.forward[keep],
+                      None if cands.source is None else cands.source[keep])
 
 
 @dataclass
@@ -151,7 +166,11 @@ def explore(model: ExplorationModel, world: ExplorationWorld, targets: Sequence[
     (``model.update``) and the run ends as ``stopped="cancelled"``. ``spent``: interactions
     an earlier, interrupted run on these targets already executed (a resumed session; the
     model has learned from them): they count against the budget and the step numbers
-    continue after them."""
+    continue after them.
+
+    ``cfg.check_approach``: candidates whose approach runs into the object's observed cloud
+    are dropped before scoring (:func:`clear_candidates`): they are neither executed nor
+    counted in an object's mean similarity; an object left without any is not explored."""
     rng = rng or np.random.default_rng(cfg.seed)
     n = len(targets)
     total = max(0, cfg.budget * n - spent) if strategy.explores else 0
@@ -159,11 +178,19 @@ def explore(model: ExplorationModel, world: ExplorationWorld, targets: Sequence[
     clouds = [world.observe(t) for t in targets]
     groups = [str(getattr(t, "category", "all")) for t in targets]
     mask_of = (lambda c: getattr(c, "movable", None)) if cfg.use_mask else (lambda c: None)
+
+    def feasible(cloud: CloudLike, cands: Candidates) -> Candidates:
+        if not cfg.check_approach:
+            return cands
+        clear = clear_candidates(cloud, cands, primitive)
+        log.debug("approach check: %d of %d candidates clear", len(clear), len(cands))
+        return clear
+
     labels: list[np.ndarray] | None = None
     pools: list[Candidates] | None = None
     if strategy.needs_labels:  # hindsight: a fixed labelled pool per object (not counted)
-        pools = [sample_candidates(c, cfg.oracle_pool, 1, np.random.default_rng(
-            _stable(_name(t))), mask_of(c)) for c, t in zip(clouds, targets, strict=True)]
+        pools = [feasible(c, sample_candidates(c, cfg.oracle_pool, 1, np.random.default_rng(
+            _stable(_name(t))), mask_of(c))) for c, t in zip(clouds, targets, strict=True)]
         labels = [np.array([world.execute(t, p.action(c, i, primitive)).success
                             for i in range(len(p))], np.float32)
                   for c, t, p in zip(clouds, targets, pools, strict=True)]
@@ -179,8 +206,8 @@ def explore(model: ExplorationModel, world: ExplorationWorld, targets: Sequence[
         if pools is not None:
             cands = [_without(p, u) for p, u in zip(pools, used, strict=True)]
         else:
-            cands = [sample_candidates(c, cfg.points_per_object, cfg.dirs_per_point, rng,
-                                       mask_of(c)) for c in clouds]
+            cands = [feasible(c, sample_candidates(c, cfg.points_per_object, cfg.dirs_per_point,
+                                                   rng, mask_of(c))) for c in clouds]
         scored = model.score(clouds, cands)
         obj_mean = [float(np.mean(s.similarity)) if len(s.similarity) else 1.0
                     for s in scored]

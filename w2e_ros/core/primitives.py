@@ -26,6 +26,16 @@ MOTION_THRESHOLD = 0.01  # success needs |motion| > 0.01 (m or rad)
 RANGE_FRACTION = 0.5  # ... or |motion| / range > 0.5
 PULL_COSINE = 0.5  # pull: contact point must move along -up
 
+# The hand's collision shapes (a Panda-size hand), wrist-relative in the gripper frame
+# [forward, left, up], metres. The simulator builds its flying gripper from these
+# (sim_bridge.physics) and the approach check (w2e_ros.core.feasibility) sweeps them; a real
+# hand of another size changes them here.
+FINGER_JOINT_Z = 0.0584  # finger joints ahead of the wrist along up; the palm ends there
+FINGER_LENGTH = 0.055  # along up: fingertips FINGER_JOINT_Z + FINGER_LENGTH ahead of the wrist
+FINGER_HALF = (0.01, 0.01)  # finger box half size (forward, left)
+FINGER_MAX = 0.04  # largest opening of each finger (m along +-left)
+PALM_HALF = (0.03, 0.1, 0.023)  # palm box half size (forward, left, up), behind the joints
+
 
 @dataclass(frozen=True)
 class Action:

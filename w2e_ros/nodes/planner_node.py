@@ -9,6 +9,11 @@ through the bridge's ``load_scene``, interactions run by the executor's
 interactions. ``manipulate`` executes, per object, the action with the highest predicted
 affordance. Progress goes out on ``exploration_progress`` after every step.
 
+With ``check_approach`` (on by default) both act only where the hand's approach does not run
+into the object's observed cloud (``w2e_ros.core.feasibility``): manipulate takes the best of
+the ``approach_candidates`` highest-affordance actions that passes, explore drops the
+candidates that do not.
+
 Every executed interaction is appended to the session's log on disk
 (``w2e_ros.core.session_log``) before it is learned from, and the inference node saves the
 session's checkpoint after every update; an explore call for a session whose last run did not
@@ -50,12 +55,14 @@ from w2e_msgs.srv import Explore, LoadScene, Manipulate, PredictMaps, UpdateMode
 from w2e_ros.core.categories import load_categories
 from w2e_ros.core.config import ExploreConfig
 from w2e_ros.core.explore import Candidates, Executed, StepRecord, explore
+from w2e_ros.core.feasibility import first_clear
 from w2e_ros.core.primitives import PRIMITIVES, Action, TrialResult
 from w2e_ros.core.session_log import SessionRun, open_session
 from w2e_ros.core.sim_world import stable_seed
 from w2e_ros.core.strategies import Scored, get_strategy
 from w2e_ros.ros.conversions import (
     action_to_interaction,
+    interaction_to_action,
     outcome_to_trial_result,
     trial_result_to_outcome,
 )
@@ -80,6 +87,13 @@ class PlannerSettings:
                               min=0)
     manipulate_directions: int = param(16, "gripper frames per point scored for manipulate "
                                        "(0: the inference node's default)", min=0)
+    check_approach: bool = param(True, "act only where the hand's approach (start pose to "
+                                 "contact) does not run into the object's observed cloud: "
+                                 "manipulate executes the best such action, explore drops the "
+                                 "other candidates (bench/approach_check.py)")
+    approach_candidates: int = param(256, "manipulate with check_approach: the best actions "
+                                     "asked from the inference node and checked, best first "
+                                     "(none clear: the object is not touched)", min=1)
     service_timeout_s: float = param(120.0, "longest wait for predict_maps / update_model",
                                      min=0.1)
     execute_timeout_s: float = param(60.0, "longest wait for one executed interaction",
@@ -535,7 +549,7 @@ class PlannerNode(Node):
             cfg = ExploreConfig(budget=int(req.budget), sim_bar=bar,
                                 points_per_object=s.points_per_object,
                                 dirs_per_point=s.dirs_per_point, snapshot_budgets=(),
-                                seed=s.seed)
+                                check_approach=s.check_approach, seed=s.seed)
 
             def on_step(rec: StepRecord) -> None:
                 prog.records.append(rec)
@@ -652,14 +666,24 @@ class PlannerNode(Node):
                 cloud = world.observe(oid)
                 maps = self.call(self.predict_cli, PredictMaps.Request(
                     clouds=[cloud.msg], object_ids=[oid], primitive=req.primitive,
-                    num_directions=s.manipulate_directions, num_best=1,
+                    num_directions=s.manipulate_directions,
+                    num_best=s.approach_candidates if s.check_approach else 1,
                     seed=stable_seed("manipulate", key_of.get(oid, oid), s.seed)),
                     "predict_maps")
-                best = maps.maps[0].best_actions[0]
+                k = self._first_clear(cloud, maps.maps[0].best_actions, req.primitive)
+                best = maps.maps[0].best_actions[max(k, 0)]
                 best.object_id, best.primitive = oid, req.primitive
-                outcome = self.execute(best)
+                if k < 0:  # every approach runs into the object: do not touch it
+                    outcome = InteractionOutcome(
+                        valid=False, joint_index=-1,
+                        reason=f"not executed: the approach of each of the "
+                               f"{len(maps.maps[0].best_actions)} best actions runs into the "
+                               "object's observed cloud")
+                    self.get_logger().warning(f"manipulate object {oid}: {outcome.reason}")
+                else:
+                    outcome = self.execute(best)
                 res.interactions.append(best)
-                res.predicted_affordances.append(float(maps.maps[0].best_scores[0]))
+                res.predicted_affordances.append(float(maps.maps[0].best_scores[max(k, 0)]))
                 res.outcomes.append(outcome)
             n_ok = sum(o.success for o in res.outcomes)
             res.success = n_ok == len(res.outcomes)
@@ -674,6 +698,22 @@ class PlannerNode(Node):
             self.busy.release()
         self.get_logger().info(f"manipulate: {res.message}")
         return res
+
+
+    def _first_clear(self, cloud: ObservedCloud, actions: Sequence[Interaction],
+                     primitive: str) -> int:
+        """Index of the best action whose approach is clear (check_approach), -1 if none;
+        0 without the check."""
+        if not self.settings.check_approach:
+            return 0
+        acts = [interaction_to_action(a) for a in actions]
+        k = first_clear(cloud.points, np.array([a.point for a in acts]),
+                        np.array([a.up for a in acts]), np.array([a.forward for a in acts]),
+                        primitive)
+        if k > 0:
+            self.get_logger().info(f"manipulate: the {k} best action(s) run into the object "
+                                   f"on their approach; executing number {k + 1}")
+        return k
 
 
 def main(args: list[str] | None = None) -> None:
