@@ -44,6 +44,9 @@ def _add_collect(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--workers", type=int, default=2, help="parallel worker processes")
     p.add_argument("--obs-per-shard", type=int, default=8)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--outcome-source", choices=["joints", "clouds"], default="joints",
+                   help="judge success from the simulator's joint states, or from the object's "
+                        "camera clouds before and after each trial, as a real robot does")
     p.set_defaults(func=_run_collect)
 
 
@@ -55,7 +58,7 @@ def _run_collect(a: argparse.Namespace) -> int:
         interactions=a.interactions, primitives=tuple(a.primitives), num_points=a.num_points,
         movable_fraction=a.movable_fraction, grasp_fraction=a.grasp_fraction,
         cone_fraction=a.cone_fraction, workers=a.workers, obs_per_shard=a.obs_per_shard,
-        seed=a.seed)
+        seed=a.seed, outcome_source=a.outcome_source)
     summary = collect(cfg)
     print(summary.table())
     return 0
@@ -151,6 +154,11 @@ def _add_explore_args(p: argparse.ArgumentParser) -> None:
                    help="most gradient steps per update (stops when the explored-set fit "
                         "levels off)")
     p.add_argument("--finetune-lr", type=float, default=1e-3, help="fine-tuning learning rate")
+    p.add_argument("--finetune-clouds", type=int, default=4,
+                   help="with --finetune all: explored clouds encoded per step")
+    p.add_argument("--encoder-lr-scale", type=float, default=1.0,
+                   help="with --finetune all: the encoder's learning rate relative to the "
+                        "heads'")
     p.add_argument("--anchor", type=float, default=0.1,
                    help="L2-SP weight pulling the fine-tuned heads towards the trained ones "
                         "(0: off); without it a few interactions made the model worse")
@@ -169,6 +177,8 @@ def _explore_config(a: argparse.Namespace, **kw: object) -> ExploreConfig:
     return ExploreConfig(points_per_object=a.points, dirs_per_point=a.dirs,
                          round_size=a.round_size, finetune=a.finetune,
                          finetune_steps=a.finetune_steps, finetune_lr=a.finetune_lr,
+                         finetune_clouds=a.finetune_clouds,
+                         encoder_lr_scale=a.encoder_lr_scale,
                          replay_fraction=a.replay_fraction, anchor=a.anchor,
                          use_mask=not a.no_mask,
                          sim_bar=a.bar, **kw)

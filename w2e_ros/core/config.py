@@ -107,8 +107,10 @@ class ExploreConfig:
     finetune: str = "heads"  # heads: encoder frozen, features cached | all: every weight
     finetune_steps: int = 500  # most Adam steps per update
     finetune_min_steps: int = 100
-    finetune_batch: int = 256  # explored rows per step (heads); clouds per step = /16 (all)
+    finetune_batch: int = 256  # explored rows per step (heads)
+    finetune_clouds: int = 4  # all: explored clouds encoded per step (all their rows)
     finetune_lr: float = 1e-3
+    encoder_lr_scale: float = 1.0  # all: encoder lr / heads lr (0.1 underfit in 300 steps)
     fit_patience: int = 10  # checks (every 20 steps) without a 0.5 % better explored-set loss
     replay_fraction: float = 0.01  # distinct training interactions replayed
     replay_weight: float = 0.5  # weight of the replay loss next to the explored loss

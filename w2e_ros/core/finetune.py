@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import copy
 import logging
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -102,9 +103,13 @@ class W2EExplorer:
         make_deterministic(seed)
         self.rng = np.random.default_rng(seed)
         self.heads_only = cfg.finetune == "heads"
-        params = [p for n, p in model.named_parameters()
-                  if not (self.heads_only and n.startswith("encoder."))]
-        self.opt = torch.optim.Adam(params, lr=cfg.finetune_lr)
+        heads = [p for n, p in model.named_parameters() if not n.startswith("encoder.")]
+        groups = [{"params": heads, "lr": cfg.finetune_lr}]
+        if not self.heads_only:
+            groups.append({"params": list(model.encoder.parameters()),
+                           "lr": cfg.finetune_lr * cfg.encoder_lr_scale})
+        params = [p for g in groups for p in g["params"]]
+        self.opt = torch.optim.Adam(groups)
         # L2-SP anchor: the weights the fine-tuning starts from (a few explored interactions
         # must not drag the pre-trained heads far from what the training data taught them)
         self._anchor = [(p, p.detach().clone()) for p in params] if cfg.anchor > 0 else []
@@ -124,8 +129,15 @@ class W2EExplorer:
         self.fit_log: list[dict[str, float]] = []
         if replay is not None and replay.num_interactions and cfg.replay_fraction > 0:
             n = max(1, int(round(cfg.replay_fraction * replay.num_interactions)))
-            rows = np.sort(self.rng.choice(replay.num_interactions,
-                                           size=min(n, replay.num_interactions), replace=False))
+            if self.heads_only:  # distinct interactions from as many clouds as possible
+                rows = np.sort(self.rng.choice(replay.num_interactions,
+                                               size=min(n, replay.num_interactions),
+                                               replace=False))
+            else:  # whole clouds: every encoder pass of a replayed cloud trains all its rows
+                order = self.rng.permutation(replay.num_observations)
+                counts = np.bincount(replay.obs_index, minlength=replay.num_observations)
+                keep = order[:int(np.searchsorted(np.cumsum(counts[order]), n)) + 1]
+                rows = np.flatnonzero(np.isin(replay.obs_index, keep))
             self.replay_rows = self._rows_from_data(replay, rows)
             self.replay_rows.key = np.arange(len(self.replay_rows))
 
@@ -238,7 +250,7 @@ class W2EExplorer:
             return rows.take(np.sort(self.rng.choice(len(rows), size=n, replace=False)))
         # whole clouds, so each encoded cloud contributes all its rows
         clouds = np.unique(rows.cloud)
-        pick = self.rng.choice(clouds, size=min(len(clouds), max(1, n // 16)), replace=False)
+        pick = self.rng.choice(clouds, size=min(len(clouds), n), replace=False)
         return rows.take(np.flatnonzero(np.isin(rows.cloud, pick)))
 
     def _step(self, explored: Rows, replay: Rows) -> dict[str, float]:
@@ -290,12 +302,60 @@ class W2EExplorer:
         la, ls = float(loss_aff.detach()), float(loss_sim.detach())
         return {"loss_aff": la, "loss_sim": ls, "loss": la + ls}
 
+    def _step_all(self, explored: Rows, replay: Rows) -> dict[str, float]:
+        """Every weight: one encoder pass over the sampled clouds, one Adam step on the
+        affordance loss plus the similarity loss (the similarity head reads detached
+        features, so only the affordance loss moves the encoder; its target counts the
+        predictions before the step)."""
+        parts = [(r, w, acc) for r, w, acc in ((explored, 1.0, self.acc),
+                                                (replay, self.cfg.replay_weight,
+                                                 self.replay_acc)) if len(r)]
+        rows = parts[0][0] if len(parts) == 1 else parts[0][0].cat(parts[1][0])
+        self.model.train()
+        f_all = self._row_features(rows, grad=True)
+        loss_aff = torch.zeros((), device=self.device)
+        loss_sim = torch.zeros((), device=self.device)
+        start = 0
+        for r, w, acc in parts:
+            f = f_all[start:start + len(r)]
+            start += len(r)
+            a = torch.from_numpy(r.action).to(self.device)
+            logit = self.model.aff_head(f, a)
+            if r.aff.any() and self._train_affordance:
+                m = torch.from_numpy(r.aff).to(self.device)
+                y = torch.from_numpy(r.success.astype(np.float32)).to(self.device)
+                wt = torch.from_numpy(balanced_weights(r.success[r.aff])).to(self.device)
+                loss_aff = loss_aff + w * F.binary_cross_entropy_with_logits(
+                    logit[m], y[m], weight=wt)
+            if r.sim.any():
+                right = (logit.detach().cpu().numpy() > 0) == r.success
+                target = torch.as_tensor(acc.update(r.key[r.sim], right[r.sim]),
+                                         dtype=torch.float32, device=self.device)
+                m = torch.from_numpy(r.sim).to(self.device)
+                loss_sim = loss_sim + w * F.binary_cross_entropy_with_logits(
+                    self.model.sim_head(f[m].detach(), a[m]), target)
+        if self._anchor:
+            loss_aff = loss_aff + self.cfg.anchor * sum(
+                ((p - p0) ** 2).sum() for p, p0 in self._anchor)
+        loss = loss_aff + loss_sim
+        self.opt.zero_grad(set_to_none=True)
+        if loss.requires_grad:
+            loss.backward()
+            self.opt.step()
+        self.model.eval()
+        la, ls = float(loss_aff.detach()), float(loss_sim.detach())
+        return {"loss_aff": la, "loss_sim": ls, "loss": la + ls}
+
     @torch.no_grad()
     def explored_fit(self) -> dict[str, float]:
         """How well the model fits what it explored (no flips): loss, accuracy, AUROC."""
         r = self.explored
         if not len(r):
             return {}
+        if not self.heads_only:  # every check encodes the clouds: judge on at most 48
+            clouds = np.unique(r.cloud)
+            keep = clouds[np.linspace(0, len(clouds) - 1, min(48, len(clouds))).astype(int)]
+            r = r.take(np.flatnonzero(np.isin(r.cloud, keep)))
         f = self._row_features(r, grad=False)
         a = torch.from_numpy(r.action).to(self.device)
         logit, sim = self.model.heads(f, a)
@@ -306,7 +366,7 @@ class W2EExplorer:
             logit, torch.from_numpy(y.astype(np.float32)).to(self.device), weight=w)
         return {"fit_loss": float(loss), "fit_acc": float(np.mean((p > 0.5) == y)),
                 "fit_auroc": auroc(p, y), "fit_pos": float(np.mean(y)),
-                "fit_sim": float(sim.mean()), "explored": float(len(r))}
+                "fit_sim": float(sim.mean()), "explored": float(len(self.explored))}
 
     def fit(self) -> dict[str, float]:
         """Train on everything explored (+ flips) and the replay until the explored-set
@@ -326,9 +386,19 @@ class W2EExplorer:
         explored = self.explored.with_flips()
         replay = self.replay_rows.with_flips() if len(self.replay_rows) else self.replay_rows
         best, bad, stats, steps = np.inf, 0, {}, 0
+        t0 = time.perf_counter()
         for steps in range(1, cfg.finetune_steps + 1):
-            stats = self._step(self._sample(explored, cfg.finetune_batch),
-                               self._sample(replay, max(16, cfg.finetune_batch // 4)))
+            if self.heads_only:
+                stats = self._step(self._sample(explored, cfg.finetune_batch),
+                                   self._sample(replay, max(16, cfg.finetune_batch // 4)))
+            else:
+                stats = self._step_all(self._sample(explored, cfg.finetune_clouds),
+                                       self._sample(replay, max(1, cfg.finetune_clouds // 2)))
+            if not self.heads_only and steps % 100 == 0:  # minutes per fit on a CPU
+                rate = steps / (time.perf_counter() - t0)
+                log.info("fit step %d/%d (%.2f steps/s, at most %.0f s left), explored-set "
+                         "loss %.3f", steps, cfg.finetune_steps, rate,
+                         (cfg.finetune_steps - steps) / rate, best)
             if steps % 20 == 0 and steps >= cfg.finetune_min_steps:
                 loss = self.explored_fit()["fit_loss"]
                 if loss < best * 0.995:
