@@ -228,6 +228,9 @@ class SimBridgeNode(Node):
                 return None
             pose, meshes = self._view()
             self._dirty = False
+            # stamped when the scene is read, as a camera stamps at exposure: a frame stamped
+            # after a trial ended shows the trial's result (the executor's clouds rely on it)
+            stamp = self.get_clock().now().to_msg()
         if self._camera is None:
             self._camera = make_camera(self._world.settings.camera)
         obs = self._camera.capture(meshes, pose)
@@ -236,7 +239,7 @@ class SimBridgeNode(Node):
             idx = np.sort(self._rng.choice(len(idx), self.settings.max_points, replace=False))
         return arrays_to_cloud(
             obs.points[idx], obs.normals[idx], {"object_id": obs.object_ids[idx].astype(np.int32)},
-            frame_id=self.settings.frame_id, stamp=self.get_clock().now().to_msg())
+            frame_id=self.settings.frame_id, stamp=stamp)
 
     def _on_camera_timer(self) -> None:
         if self.settings.publish_rate_hz <= 0 and not self._dirty:

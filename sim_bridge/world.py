@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from sim_bridge.camera import CameraSettings, PosedMesh, make_camera, random_view, view_pose
-from sim_bridge.geometry import make_pose, normalize, sapien_to_pose, transform_points
+from sim_bridge.geometry import make_pose, sapien_to_pose, transform_points
 from sim_bridge.objects.model import ObjectModel
 from sim_bridge.types import Observation
 from w2e_ros.core.primitives import (
@@ -25,6 +25,7 @@ from w2e_ros.core.primitives import (
     TrialResult,
     gripper_frame,
     judge_motion,
+    pull_direction,
     schedule,
 )
 
@@ -270,10 +271,8 @@ class ObjectWorld:
         success = False
         if valid:
             lim = self.joint_limits[target_joint] if target_joint >= 0 else (0.0, 0.0)
-            hand_move = R @ (waypoints[-1][0] - waypoints[0][0])
-            pull_dir = normalize(hand_move) if np.linalg.norm(hand_move) > 0 else -up
             success, reason = judge_motion(motion, target_joint, lim[1] - lim[0], not pushing,
-                                           disp, pull_dir)
+                                           disp, pull_direction(action))
         return TrialResult(
             valid=valid,
             success=bool(success),

@@ -11,6 +11,11 @@ the exploration loop draws its candidates from: most contacts on movable parts (
 mask), half of those on the protruding tenth of them (handles, knobs, free edges), half of
 the approach directions within 30 deg of the inward normal, the rest uniform over the
 hemisphere. The fractions are flags of ``w2e collect`` and are stored with every shard.
+
+``--outcome-source clouds`` labels success as a robot without joint sensors would, from the
+object's camera cloud before and after each trial (:mod:`w2e_ros.core.outcome`); the default
+``joints`` uses the simulator's joint states. The ``motion`` column is the simulator's joint
+motion either way.
 """
 
 from __future__ import annotations
@@ -33,9 +38,9 @@ from tqdm import tqdm
 
 from w2e_ros.core.categories import load_categories
 from w2e_ros.core.data import InteractionData
-from w2e_ros.core.primitives import Action
+from w2e_ros.core.primitives import Action, TrialResult
 from w2e_ros.core.proposals import ProposalConfig, Proposer
-from w2e_ros.core.sim_world import SimWorld, Target, stable_seed
+from w2e_ros.core.sim_world import Cloud, SimWorld, Target, stable_seed
 
 log = logging.getLogger("w2e.collect")
 
@@ -56,6 +61,7 @@ class CollectConfig:
     workers: int = 2
     obs_per_shard: int = 8
     seed: int = 0
+    outcome_source: str = "joints"  # joints | clouds (w2e_ros.core.outcome)
 
 
 @dataclass
@@ -119,17 +125,28 @@ def plan_chunks(cfg: CollectConfig) -> list[list[tuple[str, int, int]]]:
 _WORLD: SimWorld | None = None
 
 
-def _collect_observation(cfg: CollectConfig, category: str, instance: int,
-                         obs_seed: int) -> InteractionData:
-    global _WORLD
-    if _WORLD is None or _WORLD.num_points != cfg.num_points:
-        _WORLD = SimWorld(num_points=cfg.num_points)
+@dataclass
+class Trial:
+    """One collected interaction: the proposal and what the world made of it."""
+
+    point_index: int
+    up: np.ndarray  # (3,) float32
+    forward: np.ndarray  # (3,) float32
+    action: Action
+    trial_seed: int
+    result: TrialResult | None  # None: the simulation raised (an invalid trial)
+
+
+def observation_trials(world: SimWorld, cfg: CollectConfig, category: str, instance: int,
+                       obs_seed: int) -> tuple[Target, Cloud, list[Trial]]:
+    """The observation of one (instance, start state, view) and its trials, drawn from the
+    proposal distribution and executed in ``world`` (judged by its outcome source)."""
     target = Target(category, instance, obs_seed)
-    cloud = _WORLD.observe(target)
+    cloud = world.observe(target)
     rng = np.random.default_rng(stable_seed("actions", obs_seed))
     proposer = Proposer(cloud.points, cloud.normals, cloud.movable, ProposalConfig(
         cfg.movable_fraction, cfg.grasp_fraction, cfg.cone_fraction, cfg.cone_deg))
-    rows: dict[str, list] = defaultdict(list)
+    trials = []
     for prim in cfg.primitives:
         for _ in range(cfg.interactions):
             prop = proposer.sample(1, 1, rng)
@@ -138,19 +155,32 @@ def _collect_observation(cfg: CollectConfig, category: str, instance: int,
             action = Action(point=cloud.points[pidx].astype(np.float64), up=up.astype(np.float64),
                             forward=fwd.astype(np.float64), primitive=prim)
             try:
-                res = _WORLD.execute(target, action, seed=trial_seed)
-                valid, success, motion = res.valid, res.success, _target_motion(res)
+                res = world.execute(target, action, seed=trial_seed)
             except Exception as exc:  # an exploding trial is data (invalid), not a crash
                 log.warning("trial on %s failed: %s", target.name, exc)
-                valid, success, motion = False, False, 0.0
-            rows["point_index"].append(pidx)
-            rows["up"].append(up)
-            rows["forward"].append(fwd)
-            rows["primitive"].append(prim)
-            rows["motion"].append(motion)
-            rows["valid"].append(valid)
-            rows["success"].append(success)
-            rows["trial_seed"].append(trial_seed)
+                res = None
+            trials.append(Trial(pidx, up, fwd, action, trial_seed, res))
+    return target, cloud, trials
+
+
+def _collect_observation(cfg: CollectConfig, category: str, instance: int,
+                         obs_seed: int) -> InteractionData:
+    global _WORLD
+    if (_WORLD is None or _WORLD.num_points != cfg.num_points
+            or _WORLD.outcome_source != cfg.outcome_source):
+        _WORLD = SimWorld(num_points=cfg.num_points, outcome_source=cfg.outcome_source)
+    _, cloud, trials = observation_trials(_WORLD, cfg, category, instance, obs_seed)
+    rows: dict[str, list] = defaultdict(list)
+    for t in trials:
+        res = t.result
+        rows["point_index"].append(t.point_index)
+        rows["up"].append(t.up)
+        rows["forward"].append(t.forward)
+        rows["primitive"].append(t.action.primitive)
+        rows["motion"].append(_target_motion(res) if res is not None else 0.0)
+        rows["valid"].append(res is not None and res.valid)
+        rows["success"].append(res is not None and res.success)
+        rows["trial_seed"].append(t.trial_seed)
     k = len(rows["point_index"])
     return InteractionData(
         points=cloud.points[None], normals=cloud.normals[None], movable=cloud.movable[None],
@@ -187,6 +217,8 @@ def collect(cfg: CollectConfig) -> CollectSummary:
     out.mkdir(parents=True, exist_ok=True)
     settings = {k: v for k, v in asdict(cfg).items() if k not in ("out", "workers")}
     settings["primitives"] = list(cfg.primitives)
+    if cfg.outcome_source == "joints":  # the default: manifests written before it resume
+        del settings["outcome_source"]
     manifest = out / "collect.json"
     if manifest.exists():
         old = json.loads(manifest.read_text())

@@ -100,6 +100,15 @@ def schedule(primitive: str) -> tuple[list[tuple[np.ndarray, float, str]], float
     raise ValueError(f"unknown primitive {primitive!r}")
 
 
+def pull_direction(action: Action) -> np.ndarray:
+    """(3,) unit direction the hand moves while pulling: from the grasp to the end of the
+    primitive's schedule (-up for ``pull``), in the world frame."""
+    steps, _ = schedule(action.primitive)
+    move = gripper_frame(action) @ (steps[-1][0] - steps[0][0])
+    n = float(np.linalg.norm(move))
+    return move / n if n > 0 else -gripper_frame(action)[:, 2]
+
+
 def judge_motion(motion: np.ndarray, target_joint: int, joint_range: float, pulling: bool,
                  displacement: np.ndarray, pull_direction: np.ndarray) -> tuple[bool, str]:
     """DESIGN §3's success rule for a valid trial, shared by the simulator and the executor

@@ -4,9 +4,20 @@ Action server ``execute_interaction`` (w2e_msgs/ExecuteInteraction). For each go
 the interaction into its primitive's wrist waypoints (DESIGN §3: start 0.15 m behind the
 point along ``up``, ...; :mod:`w2e_ros.ros.waypoints`), drives the robot side's
 ``follow_waypoints`` action (the sim bridge, or a Panda adapter), and judges the outcome from
-what the robot measured (joint states before/after, contact), so simulated and real trials
-are judged alike. Feedback names the phase: planning, then each waypoint's phase (approach,
-grasp, pull / push ...), then done.
+what the robot measured, so simulated and real trials are judged alike. Feedback names the
+phase: planning, then each waypoint's phase (approach, grasp, pull / push ...), then done.
+
+``outcome_source`` says what success is judged from:
+
+* ``joints`` (default): the object's joint states before and after, as the robot side
+  reports them (the simulator; :func:`w2e_ros.core.primitives.judge_motion`).
+* ``clouds``: the object's segmented cloud (``objects``, w2e_msgs/SegmentedObjects from the
+  segmentation node) in a frame taken before the interaction and in one taken after it
+  (:func:`w2e_ros.core.outcome.judge_clouds`), as on a real object without joint sensors.
+  The object is the interaction's ``object_id`` (0: the segmented object nearest the
+  contact). Validity (contact at the start, the robot could not follow) stays the robot
+  side's; an interaction whose clouds cannot be judged (no fresh frame, clouds in different
+  frames) is reported invalid with the reason, so it teaches the model nothing.
 
 The action callback waits on another node's action: the server and the client live in
 separate callback groups and the node spins in a MultiThreadedExecutor, so the wait never
@@ -16,15 +27,26 @@ blocks the responses it is waiting for.
 from __future__ import annotations
 
 import threading
-from dataclasses import dataclass
+import time
+from dataclasses import dataclass, replace
 
 import numpy as np
 from rclpy.action import ActionClient, ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.duration import Duration
 from rclpy.node import Node
+from rclpy.time import Time
 from w2e_msgs.action import ExecuteInteraction, FollowWaypoints
-from w2e_msgs.msg import InteractionOutcome
+from w2e_msgs.msg import InteractionOutcome, SegmentedObjects
 
+from w2e_ros.core.outcome import (
+    DEFAULT_JUDGE,
+    OUTCOME_SOURCES,
+    CloudOutcome,
+    apply_cloud_outcome,
+    judge_clouds,
+)
+from w2e_ros.core.primitives import Action
 from w2e_ros.ros.conversions import (
     from_xyz,
     interaction_to_action,
@@ -32,6 +54,8 @@ from w2e_ros.ros.conversions import (
     trial_result_to_outcome,
 )
 from w2e_ros.ros.params import declare_typed_parameters, describe, param
+from w2e_ros.ros.pointcloud import cloud_to_arrays
+from w2e_ros.ros.qos import LATCHED_QOS
 from w2e_ros.ros.spin import run_node
 from w2e_ros.ros.waypoints import outcome_from_measurement, plan_waypoints
 
@@ -45,6 +69,22 @@ class ExecutorSettings:
     server_timeout_s: float = param(10.0, "how long to wait for the robot side to appear",
                                     min=0.0)
     trial_timeout_s: float = param(120.0, "how long one trajectory may take", min=0.0)
+    outcome_source: str = param(
+        "joints", "what success is judged from: joints (the object's joint states the robot "
+        "side reports: the simulator) or clouds (the object's segmented cloud on objects "
+        "before and after: a real object without joint sensors)")
+    cloud_timeout_s: float = param(
+        10.0, "clouds: longest wait for a segmented frame of the object taken before / after "
+        "the interaction", min=0.0)
+    cloud_settle_s: float = param(
+        0.0, "clouds: the after frame must be taken this long after the robot finished (a "
+        "part still swinging, a camera whose stamps lag)", min=0.0)
+    cloud_min_motion: float = param(
+        DEFAULT_JUDGE.min_motion, "clouds: motion near the contact that counts as moved (m)",
+        min=0.0)
+    cloud_radius: float = param(
+        DEFAULT_JUDGE.radius, "clouds: neighbourhood of the contact whose motion is judged (m)",
+        min=0.0)
 
 
 class _Waiter:
@@ -69,7 +109,18 @@ class GripperExecutorNode(Node):
         super().__init__("executor", **node_kwargs)
         self.settings = declare_typed_parameters(self, ExecutorSettings)
         self.get_logger().info(f"settings: {describe(self.settings)}")
+        s = self.settings
+        if s.outcome_source not in OUTCOME_SOURCES:
+            raise ValueError(f"outcome_source must be one of {OUTCOME_SOURCES}, got "
+                             f"{s.outcome_source!r}")
+        self.judge = replace(DEFAULT_JUDGE, min_motion=s.cloud_min_motion, radius=s.cloud_radius)
         self._busy = threading.Lock()  # one interaction at a time: there is one gripper
+        self._objects: SegmentedObjects | None = None  # the latest segmented frame (clouds)
+        self._objects_cv = threading.Condition()
+        self._last_end: Time | None = None  # when the last interaction ended (clouds)
+        if s.outcome_source == "clouds":  # its own group: delivered while a goal waits
+            self.create_subscription(SegmentedObjects, "objects", self._on_objects, LATCHED_QOS,
+                                     callback_group=MutuallyExclusiveCallbackGroup())
         self._robot = ActionClient(self, FollowWaypoints, self.settings.robot_action,
                                    callback_group=ReentrantCallbackGroup())
         self._server = ActionServer(
@@ -110,6 +161,15 @@ class GripperExecutorNode(Node):
             phase("done" if k >= n else plan.phases[k], k, n)
 
         with self._busy:
+            clouds = self.settings.outcome_source == "clouds"
+            before = None
+            if clouds:  # the object as it is now: a frame taken after the last interaction
+                before = self._wait_cloud(interaction.object_id, action, self._last_end)
+                if before is None:
+                    return fail(f"outcome_source clouds: no segmented cloud of object "
+                                f"{interaction.object_id} on 'objects' within "
+                                f"{self.settings.cloud_timeout_s:.0f} s (is the segmentation "
+                                "node running?)")
             if not self._robot.wait_for_server(timeout_sec=self.settings.server_timeout_s):
                 return fail(f"robot action {self.settings.robot_action!r} is not available")
             try:
@@ -121,6 +181,11 @@ class GripperExecutorNode(Node):
                 res = _Waiter(sent.get_result_async()).wait(self.settings.trial_timeout_s).result
             except TimeoutError:
                 return fail("the robot side did not answer in time")
+            self._last_end = self.get_clock().now() + Duration(
+                seconds=self.settings.cloud_settle_s)
+            after = None
+            if clouds and res.valid:
+                after = self._wait_cloud(interaction.object_id, action, self._last_end)
         if not res.valid and not res.joints_before.position:
             return fail(res.message or "the robot could not follow the trajectory")
         trial = outcome_from_measurement(
@@ -134,14 +199,69 @@ class GripperExecutorNode(Node):
             valid=bool(res.valid),
             reason=res.message,
         )
+        note = ""
+        if clouds and trial.valid:
+            judged_by_joints = trial.success
+            judged = self._judge(before, after, action)
+            if isinstance(judged, str):
+                trial = replace(trial, valid=False, success=False, reason=judged)
+            else:
+                trial = apply_cloud_outcome(trial, judged)
+                note = (f" [clouds: motion {judged.motion:.4f} m (threshold "
+                        f"{judged.threshold:.4f}), cosine {judged.cosine:+.2f}"
+                        + (f"; joints say success={judged_by_joints}"
+                           if len(res.joints_before.position) else "") + "]")
         outcome = trial_result_to_outcome(trial)
         phase("done", n, n)
         self.get_logger().info(
             f"{action.primitive} on object {interaction.object_id}: valid={outcome.valid} "
             f"success={outcome.success} motion={outcome.motion:+.4f} "
-            f"part={outcome.moved_part or '-'} {outcome.reason}")
+            f"part={outcome.moved_part or '-'} {outcome.reason}{note}")
         goal_handle.succeed()
         return ExecuteInteraction.Result(outcome=outcome)
+
+
+    # -- outcome from clouds ------------------------------------------------------------------
+    def _on_objects(self, msg: SegmentedObjects) -> None:
+        with self._objects_cv:
+            self._objects = msg
+            self._objects_cv.notify_all()
+
+    def _wait_cloud(self, object_id: int, action: Action, newer_than: Time | None
+                    ) -> tuple[np.ndarray, str] | None:
+        """(points, frame) of the object in the first segmented frame stamped after
+        ``newer_than`` (None: the latest frame), or None after ``cloud_timeout_s``. Object 0:
+        the segmented object nearest the contact point."""
+        deadline = time.monotonic() + self.settings.cloud_timeout_s
+        point = np.asarray(action.point, float)
+        with self._objects_cv:
+            while True:
+                m = self._objects
+                if m is not None and (newer_than is None
+                                      or Time.from_msg(m.header.stamp) > newer_than):
+                    clouds = {int(o.id): cloud_to_arrays(o.cloud).points for o in m.objects}
+                    if object_id == 0 and clouds:
+                        object_id = min(clouds, key=lambda i: float(
+                            np.linalg.norm(clouds[i] - point, axis=1).min()))
+                    if object_id in clouds:
+                        return clouds[object_id], m.header.frame_id
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return None
+                self._objects_cv.wait(min(left, 0.5))
+
+    def _judge(self, before: tuple[np.ndarray, str] | None,
+               after: tuple[np.ndarray, str] | None, action: Action) -> CloudOutcome | str:
+        """The cloud judgement, or why the clouds cannot judge this interaction."""
+        if before is None or after is None:
+            return (f"outcome_source clouds: no segmented cloud of the object in a frame taken "
+                    f"after the interaction within {self.settings.cloud_timeout_s:.0f} s")
+        try:
+            return judge_clouds(before[0], after[0], action,
+                                frames=(before[1], after[1], self.settings.frame_id),
+                                config=self.judge)
+        except ValueError as err:
+            return f"outcome_source clouds: {err}"
 
 
 def main(args: list[str] | None = None) -> None:

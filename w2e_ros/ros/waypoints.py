@@ -21,6 +21,7 @@ from w2e_ros.core.primitives import (
     TrialResult,
     gripper_frame,
     judge_motion,
+    pull_direction,
     schedule,
 )
 
@@ -146,11 +147,7 @@ def outcome_from_measurement(
     success = False
     if valid:
         pulling = action.primitive.startswith("pull")
-        pull = np.zeros(3)
-        if pulling:
-            plan = plan_waypoints(action)
-            pull = plan.positions[-1] - plan.positions[1]  # from the grasp to the end
-            pull = pull / max(np.linalg.norm(pull), 1e-12)
+        pull = pull_direction(action) if pulling else np.zeros(3)
         in_range = 0 <= contact_joint < len(motion)
         success, why = judge_motion(motion, contact_joint,
                                     float(joint_ranges[contact_joint]) if in_range else 0.0,
