@@ -7,11 +7,15 @@ import pytest
 
 from w2e_ros.core import primitives
 from w2e_ros.core.feasibility import (
+    FLYING,
     ApproachCheck,
+    Arm,
     approach_clear,
     approach_hits,
     approach_path,
+    arm_reachable,
     first_clear,
+    first_feasible,
     hand_boxes,
 )
 
@@ -191,3 +195,48 @@ def test_a_rejected_approach_is_invalid_in_the_simulator():
     outside = Action(point, -normal, fwd, "push")
     assert approach_clear(cloud.points, point, outside.up, fwd, "push")[0]
     assert world.execute(target, outside).valid
+
+
+# --- reach of a Panda -------------------------------------------------------------------
+def _drawer_candidates():
+    """Four pull actions on a drawer front facing a Panda at the origin: far out of reach,
+    reachable, reachable, below the floor of the workspace box."""
+    pts = np.array([[1.5, 0.0, 0.5], [0.6, 0.0, 0.5], [0.6, 0.1, 0.5], [0.6, 0.0, -0.3]])
+    up = np.tile([1.0, 0.0, 0.0], (4, 1))
+    fwd = np.tile([0.0, 0.0, 1.0], (4, 1))
+    return pts, up, fwd
+
+
+def test_the_flying_hand_reaches_everything():
+    pts, up, fwd = _drawer_candidates()
+    assert arm_reachable(pts, up, fwd, "pull").all()
+
+
+def test_the_panda_reaches_only_what_its_joints_and_box_allow():
+    pts, up, fwd = _drawer_candidates()
+    ok = arm_reachable(pts, up, fwd, "pull", Arm("panda"))
+    assert ok.tolist() == [False, True, True, False]
+    moved = Arm("panda", base_pose=(0.0, 0.0, -0.8, 0.0, 0.0, 0.0, 1.0))  # base lowered 0.8 m
+    assert arm_reachable(pts, up, fwd, "pull", moved)[3]
+
+
+def test_first_feasible_skips_blocked_and_unreachable_candidates_in_order():
+    pts, up, fwd = _drawer_candidates()
+    # a wall 3 cm in front of the second candidate's contact blocks its approach only
+    y, z = np.meshgrid(np.arange(-0.05, 1e-9, 0.01), np.arange(0.45, 0.55 + 1e-9, 0.01))
+    wall = np.stack([np.full(y.size, 0.57), y.ravel(), z.ravel()], axis=1)
+    cloud = np.concatenate([pts, wall])
+    k, refused = first_feasible(cloud, pts, up, fwd, "pull", Arm("panda"), chunk=2)
+    assert k == 2 and refused == {"blocked": 1, "unreachable": 1}
+    k, refused = first_feasible(cloud, pts, up, fwd, "pull", Arm("panda"), check=None)
+    assert k == 1 and refused == {"blocked": 0, "unreachable": 1}
+    assert first_feasible(cloud, pts, up, fwd, "pull", FLYING, check=None)[0] == 0
+    assert first_feasible(cloud, pts[[0, 3]], up[[0, 3]], fwd[[0, 3]], "pull",
+                          Arm("panda"))[0] == -1
+
+
+def test_an_arm_is_described_fully_or_refused():
+    with pytest.raises(ValueError, match="arm must be one of"):
+        Arm("ur5")
+    with pytest.raises(ValueError, match="7 numbers"):
+        Arm("panda", base_pose=(0.0, 0.0, 0.0))

@@ -25,7 +25,14 @@ import numpy as np
 
 from w2e_ros.core.config import ExploreConfig
 from w2e_ros.core.data import InteractionData
-from w2e_ros.core.feasibility import DEFAULT_CHECK, ApproachCheck, approach_clear
+from w2e_ros.core.feasibility import (
+    DEFAULT_CHECK,
+    FLYING,
+    ApproachCheck,
+    Arm,
+    approach_clear,
+    arm_reachable,
+)
 from w2e_ros.core.finetune import W2EExplorer
 from w2e_ros.core.model import W2EModel
 from w2e_ros.core.primitives import Action, TrialResult
@@ -154,7 +161,7 @@ def explore(model: ExplorationModel, world: ExplorationWorld, targets: Sequence[
             rng: np.random.Generator | None = None,
             on_step: Callable[[StepRecord], None] | None = None,
             should_stop: Callable[[], bool] | None = None,
-            spent: int = 0) -> ExplorationResult:
+            spent: int = 0, arm: Arm = FLYING) -> ExplorationResult:
     """Explore ``targets`` with ``strategy``: ``cfg.budget`` x len(targets) interactions in
     rounds of ``cfg.round_size``, or until every object's mean similarity passes the bar.
     Snapshots of the model once b x len(targets) interactions are spent, for each b in
@@ -170,7 +177,9 @@ def explore(model: ExplorationModel, world: ExplorationWorld, targets: Sequence[
 
     ``cfg.check_approach``: candidates whose approach runs into the object's observed cloud
     are dropped before scoring (:func:`clear_candidates`): they are neither executed nor
-    counted in an object's mean similarity; an object left without any is not explored."""
+    counted in an object's mean similarity; an object left without any is not explored.
+    ``arm``: with a Panda, candidates the arm cannot follow (IK, joint limits, workspace box:
+    :func:`w2e_ros.core.feasibility.arm_reachable`) are dropped the same way."""
     rng = rng or np.random.default_rng(cfg.seed)
     n = len(targets)
     total = max(0, cfg.budget * n - spent) if strategy.explores else 0
@@ -180,11 +189,18 @@ def explore(model: ExplorationModel, world: ExplorationWorld, targets: Sequence[
     mask_of = (lambda c: getattr(c, "movable", None)) if cfg.use_mask else (lambda c: None)
 
     def feasible(cloud: CloudLike, cands: Candidates) -> Candidates:
-        if not cfg.check_approach:
-            return cands
-        clear = clear_candidates(cloud, cands, primitive)
-        log.debug("approach check: %d of %d candidates clear", len(clear), len(cands))
-        return clear
+        if cfg.check_approach:
+            n = len(cands)
+            cands = clear_candidates(cloud, cands, primitive)
+            log.debug("approach check: %d of %d candidates clear", len(cands), n)
+        if arm.kind != FLYING.kind and len(cands):
+            pts = np.asarray(cloud.points)
+            keep = np.flatnonzero(arm_reachable(pts[cands.point_index], cands.up,
+                                                cands.forward, primitive, arm))
+            log.debug("%s reach: %d of %d candidates", arm.kind, len(keep), len(cands))
+            cands = Candidates(cands.point_index[keep], cands.up[keep], cands.forward[keep],
+                               None if cands.source is None else cands.source[keep])
+        return cands
 
     labels: list[np.ndarray] | None = None
     pools: list[Candidates] | None = None

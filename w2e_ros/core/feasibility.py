@@ -226,3 +226,74 @@ def first_clear(cloud: np.ndarray, point: np.ndarray, up: np.ndarray, forward: n
     clear, -1 when none is."""
     ok = approach_clear(cloud, point, up, forward, primitive, check)
     return int(np.argmax(ok)) if ok.any() else -1
+
+
+# --- can the arm follow the action? -----------------------------------------------------
+ARMS: tuple[str, ...] = ("flying", "panda")
+"""``flying``: the simulator's free-floating hand (every pose reachable: the paper's
+benchmark); ``panda``: a Franka Panda on a fixed base (:mod:`w2e_ros.core.kinematics`)."""
+
+
+@dataclass(frozen=True)
+class Arm:
+    """The arm that executes the actions: kind, base pose (x y z qx qy qz qw in the cloud's
+    frame) and the workspace box (base frame, m)."""
+
+    kind: str = "flying"
+    base_pose: tuple[float, ...] = ()
+    workspace_min: tuple[float, ...] = (-0.9, -0.9, -0.2)
+    workspace_max: tuple[float, ...] = (0.9, 0.9, 1.2)
+
+    def __post_init__(self) -> None:
+        if self.kind not in ARMS:
+            raise ValueError(f"arm must be one of {ARMS}, got {self.kind!r}")
+        if len(self.base_pose) not in (0, 7):
+            raise ValueError("arm base pose is x y z qx qy qz qw (7 numbers) or empty (the "
+                             f"origin), got {len(self.base_pose)} numbers")
+        if len(self.workspace_min) != 3 or len(self.workspace_max) != 3:
+            raise ValueError("the workspace box corners are 3 numbers each")
+
+
+FLYING = Arm()
+
+
+def arm_reachable(point: np.ndarray, up: np.ndarray, forward: np.ndarray, primitive: str,
+                  arm: Arm = FLYING) -> np.ndarray:
+    """(C,) bool: the arm can follow each candidate's waypoints (always, for the flying
+    hand; for the Panda, :func:`w2e_ros.core.kinematics.reachable`: IK within the joint
+    limits and the workspace box along the whole primitive)."""
+    point = np.atleast_2d(np.asarray(point, float))
+    if arm.kind == "flying":
+        return np.ones(len(point), bool)
+    from w2e_ros.core import kinematics  # only a planner with an arm pays for the import
+
+    box = kinematics.WorkspaceBox(tuple(arm.workspace_min), tuple(arm.workspace_max))
+    return kinematics.reachable(point, up, forward, primitive, base_pose=arm.base_pose or None,
+                                box=box)
+
+
+def first_feasible(cloud: np.ndarray | None, point: np.ndarray, up: np.ndarray,
+                   forward: np.ndarray, primitive: str, arm: Arm = FLYING,
+                   check: ApproachCheck | None = DEFAULT_CHECK, chunk: int = 32
+                   ) -> tuple[int, dict[str, int]]:
+    """Index of the first candidate (best first) whose approach is clear (``check``; None:
+    not checked) and that ``arm`` can reach, -1 when none is, and how many candidates each
+    test refused. The IK runs on the clear candidates in chunks of ``chunk``, in order, and
+    stops at the first chunk holding a reachable one: the best candidates are usually
+    decided after one chunk."""
+    point = np.atleast_2d(np.asarray(point, float))
+    up, forward = np.atleast_2d(up), np.atleast_2d(forward)
+    clear = (approach_clear(cloud, point, up, forward, primitive, check) if check is not None
+             else np.ones(len(point), bool))
+    stats = {"blocked": int((~clear).sum()), "unreachable": 0}
+    idx = np.flatnonzero(clear)
+    for s in range(0, len(idx), chunk):
+        part = idx[s:s + chunk]
+        ok = arm_reachable(point[part], up[part], forward[part], primitive, arm)
+        if ok.any():
+            k = int(np.argmax(ok))
+            stats["unreachable"] += k
+            stats["blocked"] = int((~clear[:part[k]]).sum())
+            return int(part[k]), stats
+        stats["unreachable"] += len(part)
+    return -1, stats

@@ -12,7 +12,9 @@ affordance. Progress goes out on ``exploration_progress`` after every step.
 With ``check_approach`` (on by default) both act only where the hand's approach does not run
 into the object's observed cloud (``w2e_ros.core.feasibility``): manipulate takes the best of
 the ``approach_candidates`` highest-affordance actions that passes, explore drops the
-candidates that do not.
+candidates that do not. With ``arm: panda`` the same holds for reach: only actions whose
+waypoints a Panda based at ``arm_base_pose`` can follow (``w2e_ros.core.kinematics``: IK
+within the joint limits and the workspace box) are executed.
 
 Every executed interaction is appended to the session's log on disk
 (``w2e_ros.core.session_log``) before it is learned from, and the inference node saves the
@@ -55,7 +57,7 @@ from w2e_msgs.srv import Explore, LoadScene, Manipulate, PredictMaps, UpdateMode
 from w2e_ros.core.categories import load_categories
 from w2e_ros.core.config import ExploreConfig
 from w2e_ros.core.explore import Candidates, Executed, StepRecord, explore
-from w2e_ros.core.feasibility import first_clear
+from w2e_ros.core.feasibility import DEFAULT_CHECK, Arm, first_feasible
 from w2e_ros.core.primitives import PRIMITIVES, Action, TrialResult
 from w2e_ros.core.session_log import SessionRun, open_session
 from w2e_ros.core.sim_world import stable_seed
@@ -91,9 +93,21 @@ class PlannerSettings:
                                  "contact) does not run into the object's observed cloud: "
                                  "manipulate executes the best such action, explore drops the "
                                  "other candidates (bench/approach_check.py)")
-    approach_candidates: int = param(256, "manipulate with check_approach: the best actions "
-                                     "asked from the inference node and checked, best first "
-                                     "(none clear: the object is not touched)", min=1)
+    approach_candidates: int = param(256, "manipulate with check_approach or arm panda: the "
+                                     "best actions asked from the inference node and checked, "
+                                     "best first (none passes: the object is not touched)",
+                                     min=1)
+    arm: str = param("flying", "the arm that executes: flying (the simulator's free hand, "
+                     "every pose reachable: the paper's benchmark) or panda (a Franka Panda at "
+                     "arm_base_pose: manipulate executes the best action the arm can follow, "
+                     "explore drops the others; w2e_ros.core.kinematics)")
+    arm_base_pose: list[float] = param([], "arm panda: pose of the arm's base (panda_link0) "
+                                       "in frame_id of the clouds, x y z qx qy qz qw ([]: the "
+                                       "origin)")
+    arm_workspace_min: list[float] = param([-0.9, -0.9, -0.2], "arm panda: low corner of the "
+                                           "box the wrist must stay in (base frame, m)")
+    arm_workspace_max: list[float] = param([0.9, 0.9, 1.2], "arm panda: high corner of the "
+                                           "box the wrist must stay in (base frame, m)")
     service_timeout_s: float = param(120.0, "longest wait for predict_maps / update_model",
                                      min=0.1)
     execute_timeout_s: float = param(60.0, "longest wait for one executed interaction",
@@ -306,6 +320,9 @@ class PlannerNode(Node):
         super().__init__("planner_node", **kwargs)
         self.settings = declare_typed_parameters(self, PlannerSettings)
         get_strategy(self.settings.strategy)  # fail at start-up on a typo
+        s = self.settings
+        self.arm = Arm(s.arm, tuple(s.arm_base_pose), tuple(s.arm_workspace_min),
+                       tuple(s.arm_workspace_max))  # ValueError names a wrong value
         self.log_dir = (Path(self.settings.exploration_log_dir).expanduser()
                         if self.settings.exploration_log_dir else default_log_dir())
         self.busy = threading.Lock()
@@ -560,7 +577,7 @@ class PlannerNode(Node):
                                    f"{run.path})")
             result = explore(model, world, ids, get_strategy(s.strategy), cfg, req.primitive,
                              rng=np.random.default_rng([s.seed, spent]), on_step=on_step,
-                             should_stop=should_stop, spent=spent)
+                             should_stop=should_stop, spent=spent, arm=self.arm)
             stopped = result.stopped
             res.success = stopped != "cancelled"
             res.reached_similarity_bar = stopped == "bar"
@@ -667,18 +684,22 @@ class PlannerNode(Node):
                 maps = self.call(self.predict_cli, PredictMaps.Request(
                     clouds=[cloud.msg], object_ids=[oid], primitive=req.primitive,
                     num_directions=s.manipulate_directions,
-                    num_best=s.approach_candidates if s.check_approach else 1,
+                    num_best=(s.approach_candidates if s.check_approach or s.arm != "flying"
+                              else 1),
                     seed=stable_seed("manipulate", key_of.get(oid, oid), s.seed)),
                     "predict_maps")
                 k = self._first_clear(cloud, maps.maps[0].best_actions, req.primitive)
                 best = maps.maps[0].best_actions[max(k, 0)]
                 best.object_id, best.primitive = oid, req.primitive
-                if k < 0:  # every approach runs into the object: do not touch it
+                if k < 0:  # every approach runs into the object or out of reach
                     outcome = InteractionOutcome(
                         valid=False, joint_index=-1,
-                        reason=f"not executed: the approach of each of the "
-                               f"{len(maps.maps[0].best_actions)} best actions runs into the "
-                               "object's observed cloud")
+                        reason=f"not executed: each of the {len(maps.maps[0].best_actions)} "
+                               "best actions " + (
+                                   "runs into the object's observed cloud on its approach"
+                                   if s.arm == "flying" else
+                                   f"runs into the observed cloud or is out of the {s.arm} "
+                                   "arm's reach"))
                     self.get_logger().warning(f"manipulate object {oid}: {outcome.reason}")
                 else:
                     outcome = self.execute(best)
@@ -702,17 +723,20 @@ class PlannerNode(Node):
 
     def _first_clear(self, cloud: ObservedCloud, actions: Sequence[Interaction],
                      primitive: str) -> int:
-        """Index of the best action whose approach is clear (check_approach), -1 if none;
-        0 without the check."""
-        if not self.settings.check_approach:
+        """Index of the best action whose approach is clear (check_approach) and that the
+        arm can follow (arm panda), -1 if none; 0 without either check."""
+        if not self.settings.check_approach and self.arm.kind == "flying":
             return 0
         acts = [interaction_to_action(a) for a in actions]
-        k = first_clear(cloud.points, np.array([a.point for a in acts]),
-                        np.array([a.up for a in acts]), np.array([a.forward for a in acts]),
-                        primitive)
+        k, refused = first_feasible(
+            cloud.points, np.array([a.point for a in acts]), np.array([a.up for a in acts]),
+            np.array([a.forward for a in acts]), primitive, self.arm,
+            DEFAULT_CHECK if self.settings.check_approach else None)
         if k > 0:
-            self.get_logger().info(f"manipulate: the {k} best action(s) run into the object "
-                                   f"on their approach; executing number {k + 1}")
+            self.get_logger().info(
+                f"manipulate: of the {k} best action(s), {refused['blocked']} run into the "
+                f"object on their approach and {refused['unreachable']} are out of the "
+                f"{self.arm.kind} arm's reach; executing number {k + 1}")
         return k
 
 
