@@ -272,6 +272,9 @@ def _add_learnability(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--validate", action="store_true",
                    help="pool from explore instances 30-34, judge on 35-39 (never the test "
                         "split): for choosing settings")
+    p.add_argument("--per-category", action="store_true",
+                   help="one curve per novel category, each fine-tuned on its own "
+                        "interactions only (out/<category>/ and out/per_category.md)")
     _add_explore_args(p)
     p.add_argument("--out", default="results/learnability")
     p.add_argument("--threads", type=int, default=2)
@@ -283,7 +286,11 @@ def _run_learnability(a: argparse.Namespace) -> int:
 
     import torch
 
-    from w2e_ros.core.learnability import LearnabilityConfig, run_learnability
+    from w2e_ros.core.learnability import (
+        LearnabilityConfig,
+        run_learnability,
+        run_per_category,
+    )
 
     torch.set_num_threads(a.threads)
     cfg = LearnabilityConfig(
@@ -292,8 +299,12 @@ def _run_learnability(a: argparse.Namespace) -> int:
         selections=tuple(a.selections), validate=a.validate,
         categories=tuple(a.categories) if a.categories else None,
         references=tuple(a.references), explore=_explore_config(a))
-    summary = run_learnability(cfg)
-    print(Path(a.out, "learnability.md").read_text())
+    if a.per_category:
+        summary = run_per_category(cfg)
+        print(Path(a.out, "per_category.md").read_text())
+    else:
+        summary = run_learnability(cfg)
+        print(Path(a.out, "learnability.md").read_text())
     return 0 if summary["curves"] else 1
 
 

@@ -172,6 +172,24 @@ def learnability_figure(summary: dict, path: str | Path) -> Path:
     return _save(fig, path, dpi=90)
 
 
+def per_category_figure(summary: dict, path: str | Path) -> Path:
+    """AUROC and F-score over N, one line per category (each fine-tuned on its own
+    interactions): which categories a few interactions teach, and which they do not."""
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    for ax, (m, title) in zip(axes, (("auroc", "AUROC"), ("fscore", "F-score")), strict=True):
+        for i, (cat, curve) in enumerate(summary["curves"].items()):
+            ns = sorted(curve, key=int)
+            ax.errorbar([max(int(n), 1) for n in ns], [curve[n][m][0] for n in ns],
+                        yerr=[curve[n][m][1] for n in ns], marker="os^v"[i % 4], capsize=2,
+                        color=plt.cm.tab20(i % 20), label=cat)
+        ax.set_xscale("symlog", linthresh=10)
+        ax.set_xlabel("fine-tuning interactions of the category (0 = base model)")
+        ax.set_title(f"{summary['primitive']}: test {title} per category")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    return _save(fig, path, dpi=90)
+
+
 def _save(fig: plt.Figure, path: str | Path, dpi: int) -> Path:
     """Lay out, write (creating the folder) and close a figure."""
     fig.tight_layout()
