@@ -129,12 +129,16 @@ def _stack_yaml() -> dict[str, dict[str, dict[str, Any]]]:
     return out
 
 
-NODE_NAMES = [spec.node for spec in NODES.values()]
+ROBOT_NODES = {"arm_adapter": "w2e_ros.nodes.arm_adapter_node"}
+"""Nodes outside the bringup stack (run instead of the simulator, next to a real arm), whose
+parameters are documented and configured like the stack's."""
+MODULES = {spec.node: spec.module for spec in NODES.values()} | ROBOT_NODES
+NODE_NAMES = list(MODULES)
 
 
 @pytest.fixture(scope="module")
 def declared() -> dict[str, list[Declared]]:
-    return {spec.node: _declared(_settings_class(spec.module)) for spec in NODES.values()}
+    return {node: _declared(_settings_class(module)) for node, module in MODULES.items()}
 
 
 @pytest.mark.parametrize("node", NODE_NAMES)

@@ -235,6 +235,19 @@ class JointPlan:
     def duration(self) -> float:
         return float(self.times[-1])
 
+    def split(self, at_waypoints: Sequence[int]) -> list[tuple[int, int]]:
+        """Point ranges ``(first, last)`` (inclusive) of the pieces between the points that
+        reach ``at_waypoints`` (where the gripper acts, so the arm must stop and wait), each
+        starting at the point the previous one ended on (the state the arm is in)."""
+        cuts = sorted({int(np.flatnonzero(self.waypoint == k)[0]) for k in at_waypoints
+                       if np.any(self.waypoint == k)} | {len(self.times) - 1})
+        out, first = [], 0
+        for c in cuts:
+            if c > first:
+                out.append((first, c))
+                first = c
+        return out
+
 
 @dataclass(frozen=True)
 class PlanSettings:

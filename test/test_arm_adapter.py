@@ -1,0 +1,177 @@
+"""The arm adapter as its own process, seen from this one with plain rclpy: a primitive's
+waypoints in, a Panda JointTrajectory out on the controller's topic (live) or only on
+planned_trajectory / planned_path (dry run); an unreachable goal refused before anything is
+published.
+
+Live mode needs a joint trajectory controller; none runs here, so this process stands in for
+its two ends that the adapter touches: it publishes ``joint_states`` and, when a trajectory
+arrives on the controller topic, reports the arm at that trajectory's last point (the hand is
+not driven: ``gripper_action:=''``).
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+pytest.importorskip("w2e_msgs.action", reason="w2e_msgs not built: make interfaces")
+
+from nav_msgs.msg import Path  # noqa: E402
+from rclpy.action import ActionClient  # noqa: E402
+from rclpy.executors import MultiThreadedExecutor  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+from sensor_msgs.msg import JointState  # noqa: E402
+from trajectory_msgs.msg import JointTrajectory  # noqa: E402
+from w2e_msgs.action import FollowWaypoints  # noqa: E402
+
+from w2e_ros.core import kinematics as kin  # noqa: E402
+from w2e_ros.core.primitives import Action  # noqa: E402
+from w2e_ros.ros.conversions import to_pose  # noqa: E402
+from w2e_ros.ros.processes import (  # noqa: E402
+    clean_shm_at_exit,
+    pick_domain_id,
+    ros_env,
+    shm_files,
+    stop_process,
+)
+from w2e_ros.ros.qos import LATCHED_QOS  # noqa: E402
+from w2e_ros.ros.waypoints import plan_waypoints  # noqa: E402
+
+clean_shm_at_exit(shm_files())
+pytestmark = pytest.mark.slow
+
+REACHABLE = Action(np.array([0.6, 0.0, 0.5]), np.array([1.0, 0.0, 0.0]),
+                   np.array([0.0, 0.0, 1.0]), "pull")  # a drawer front 0.6 m ahead
+FAR = Action(np.array([1.6, 0.0, 0.5]), np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0]),
+             "pull")
+
+
+def goal_of(action: Action) -> FollowWaypoints.Goal:
+    plan = plan_waypoints(action)
+    goal = FollowWaypoints.Goal(waypoints=[to_pose(p, plan.rotation) for p in plan.positions],
+                                gripper=list(plan.gripper), initial_gripper=plan.initial_gripper)
+    goal.header.frame_id = "world"
+    return goal
+
+
+class Robot:
+    """The adapter process and, here, a client with the controller's two ends."""
+
+    def __init__(self, tmp, *params: str) -> None:
+        domain = pick_domain_id(salt=29)
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "w2e_ros.nodes.arm_adapter_node", "--ros-args",
+             *[a for p in params for a in ("-p", p)]],
+            env=ros_env(domain_id=domain, log_dir=tmp / "ros_log"), start_new_session=True,
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        self.ctx = rclpy.Context()
+        rclpy.init(context=self.ctx, domain_id=domain)
+        self.node = Node("fake_controller", context=self.ctx)
+        self.commanded: list[JointTrajectory] = []
+        self.planned: list[JointTrajectory] = []
+        self.paths: list[Path] = []
+        self.q = kin.Q_READY.copy()
+        self.node.create_subscription(JointTrajectory, "panda_arm_controller/joint_trajectory",
+                                      self._on_command, 10)
+        self.node.create_subscription(JointTrajectory, "planned_trajectory",
+                                      self.planned.append, LATCHED_QOS)
+        self.node.create_subscription(Path, "planned_path", self.paths.append, LATCHED_QOS)
+        self.states = self.node.create_publisher(JointState, "joint_states", 10)
+        self.node.create_timer(0.05, self._publish_state)
+        self.client = ActionClient(self.node, FollowWaypoints, "follow_waypoints")
+        self.exe = MultiThreadedExecutor(num_threads=2, context=self.ctx)
+        self.exe.add_node(self.node)
+        self.thread = threading.Thread(target=self.exe.spin, daemon=True)
+        self.thread.start()
+        assert self.client.wait_for_server(timeout_sec=30.0), self.output()
+
+    def _on_command(self, msg: JointTrajectory) -> None:
+        self.commanded.append(msg)
+        self.q = np.array(msg.points[-1].positions)  # the controller got there
+
+    def _publish_state(self) -> None:
+        self.states.publish(JointState(name=list(kin.PANDA_JOINTS),
+                                       position=[float(x) for x in self.q]))
+
+    def follow(self, action: Action, timeout: float = 60.0) -> FollowWaypoints.Result:
+        sent = self.client.send_goal_async(goal_of(action))
+        deadline = time.monotonic() + timeout
+        while not sent.done() and time.monotonic() < deadline:
+            time.sleep(0.02)
+        res = sent.result().get_result_async()
+        while not res.done() and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert res.done(), self.output()
+        return res.result().result
+
+    def output(self) -> str:
+        stop_process(self.proc)
+        return self.proc.stdout.read() if self.proc.stdout else ""
+
+    def close(self) -> None:
+        self.exe.shutdown(timeout_sec=1.0)
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.ctx)
+        stop_process(self.proc)
+
+
+def check_trajectory(msg: JointTrajectory) -> np.ndarray:
+    """The Panda's joints, strictly increasing times, positions within Franka's limits."""
+    assert list(msg.joint_names) == list(kin.PANDA_JOINTS)
+    t = np.array([p.time_from_start.sec + 1e-9 * p.time_from_start.nanosec for p in msg.points])
+    assert len(t) >= 1 and np.all(np.diff(t) > 0)
+    q = np.array([p.positions for p in msg.points])
+    assert q.shape == (len(t), 7)
+    assert np.all(q >= kin.Q_MIN) and np.all(q <= kin.Q_MAX)
+    return q
+
+
+def test_live_mode_sends_the_panda_trajectory_in_pieces_and_refuses_the_unreachable(tmp_path):
+    robot = Robot(tmp_path, "dry_run:=false", "gripper_action:=''", "velocity_scale:=1.0",
+                  "cartesian_speed:=0.5", "settle_s:=5.0")
+    try:
+        res = robot.follow(REACHABLE)
+        assert res.reached and res.valid, (res.message, robot.output())
+        # a pull: to the handle, (grasp), back: two pieces cut where the hand closes
+        assert len(robot.commanded) == 2
+        pieces = [check_trajectory(m) for m in robot.commanded]
+        T = kin.fk(np.concatenate(pieces))
+        wp = plan_waypoints(REACHABLE).positions
+        np.testing.assert_allclose(T[len(pieces[0]) - 1, :3, 3], wp[1], atol=1e-3)  # at grasp
+        np.testing.assert_allclose(T[-1, :3, 3], wp[-1], atol=1e-3)
+        # every step after the free move is small: the arm follows the straight line
+        q = np.concatenate(pieces)
+        assert np.abs(np.diff(q[1:], axis=0)).max() <= kin.DEFAULT_PLAN.max_joint_step
+        time.sleep(0.3)
+        assert robot.planned and len(robot.paths[-1].poses) == len(robot.planned[-1].points)
+
+        n = len(robot.commanded)
+        res = robot.follow(FAR)
+        assert not res.valid and not res.reached
+        assert res.message.startswith("unreachable") and "reach" in res.message
+        assert len(robot.commanded) == n  # nothing moved
+    finally:
+        robot.close()
+
+
+def test_dry_run_only_publishes_the_plan(tmp_path):
+    robot = Robot(tmp_path)  # dry_run defaults to true
+    try:
+        res = robot.follow(REACHABLE)
+        assert not res.valid and res.message.startswith("dry run"), res.message
+        deadline = time.monotonic() + 5.0
+        while not (robot.planned and robot.paths) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        q = check_trajectory(robot.planned[-1])
+        np.testing.assert_allclose(q[0], kin.Q_READY, atol=1e-9)  # from the reported state
+        path = robot.paths[-1]
+        assert path.header.frame_id == "world" and len(path.poses) == len(q)
+        assert robot.commanded == []
+    finally:
+        robot.close()

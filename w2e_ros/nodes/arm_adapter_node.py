@@ -1,0 +1,301 @@
+"""The hardware adapter: the executor's wrist waypoints in, a Panda's joint trajectory out.
+
+It is the robot side for a real arm, in the simulator bridge's place: it serves the same
+``follow_waypoints`` action (w2e_msgs/FollowWaypoints), so the executor and everything above it
+are unchanged (point the executor's ``robot_action`` at it, or run it instead of the bridge).
+For each goal it plans the whole motion first (:func:`w2e_ros.core.kinematics.plan_trajectory`:
+IK within the joint limits and the workspace box, straight moves cut into 1 cm pieces, times
+within the scaled velocity limits) and refuses an unreachable one with the reason before
+anything moves. The plan is published for RViz on ``planned_path`` (nav_msgs/Path of wrist
+poses) and ``planned_trajectory`` (trajectory_msgs/JointTrajectory).
+
+With ``dry_run`` (the default) that is all: the result says the motion was planned and not
+executed (``valid`` false, so no outcome is learned from it). Otherwise the trajectory goes, in
+pieces between the gripper's actions, to a joint trajectory controller's topic
+``panda_arm_controller/joint_trajectory`` (ros2_control's JointTrajectoryController; remap the
+name for another controller), the gripper is driven through a control_msgs/GripperCommand
+action (``gripper_action``, franka_gripper's ``franka_gripper/gripper_action``) between the
+pieces, and each piece must end within ``goal_tolerance`` of its last point on
+``joint_states`` (the robot's joint_state_broadcaster). The outcome of a real interaction is
+judged from clouds (the executor's ``outcome_source: clouds``): this adapter reports no object
+joints.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from builtin_interfaces.msg import Duration as DurationMsg
+from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Path
+from rclpy.action import ActionClient, ActionServer, CancelResponse, GoalResponse
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.node import Node
+from rclpy.qos import qos_profile_sensor_data
+from sensor_msgs.msg import JointState
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+from w2e_msgs.action import FollowWaypoints
+
+from w2e_ros.core import kinematics as kin
+from w2e_ros.ros.conversions import from_pose, to_pose
+from w2e_ros.ros.params import declare_typed_parameters, describe, param
+from w2e_ros.ros.qos import LATCHED_QOS, RELIABLE_QOS
+from w2e_ros.ros.spin import run_node
+from w2e_ros.ros.waypoints import GRIPPER_CLOSE, GRIPPER_KEEP, GRIPPER_OPEN
+
+CONTROLLER_TOPIC = "panda_arm_controller/joint_trajectory"  # relative: remap for another
+
+
+@dataclass
+class ArmAdapterSettings:
+    """Parameters of the arm adapter (config/w2e_stack.yaml, section arm_adapter)."""
+
+    frame_id: str = param("world", "frame of the waypoints (the stack's fixed frame)")
+    dry_run: bool = param(True, "only plan and publish planned_path / planned_trajectory for "
+                          "RViz; nothing is sent to the controller or the gripper")
+    base_pose: list[float] = param([], "pose of the arm's base (panda_link0) in frame_id, x y z "
+                                   "qx qy qz qw ([]: the origin)")
+    workspace_min: list[float] = param([-0.9, -0.9, -0.2], "low corner of the box the wrist "
+                                       "must stay in (base frame, m)")
+    workspace_max: list[float] = param([0.9, 0.9, 1.2], "high corner of the box the wrist must "
+                                       "stay in (base frame, m)")
+    joint_prefix: str = param("panda", "joint names <prefix>_joint1..7 (franka_ros2: panda, "
+                              "or fr3 for a Franka Research 3, whose limits differ: check them)")
+    velocity_scale: float = param(0.3, "share of Franka's rated joint velocities a trajectory "
+                                  "may use", min=0.01, max=1.0)
+    cartesian_speed: float = param(0.05, "wrist speed along a primitive's straight moves (m/s)",
+                                   min=0.001)
+    gripper_action: str = param("franka_gripper/gripper_action", "control_msgs/GripperCommand "
+                                "action of the hand ('': none, gripper commands are skipped)")
+    gripper_open_position: float = param(
+        0.04, "GripperCommand position of an open command (0 closes); the Panda hand opens "
+        "0.04 m per finger: check whether your gripper server reads width or finger travel",
+        min=0.0)
+    gripper_max_effort: float = param(20.0, "grasp force of a close command (N)", min=0.0)
+    gripper_timeout_s: float = param(10.0, "longest wait for one gripper command", min=0.0)
+    joint_state_timeout_s: float = param(2.0, "longest wait for joint_states (the start of a "
+                                         "plan; dry run without them: the last plan's end)",
+                                         min=0.0)
+    goal_tolerance: float = param(0.05, "largest joint error (rad) on joint_states at the end "
+                                  "of each piece", min=0.0)
+    settle_s: float = param(1.0, "how long after a piece's planned duration the arm may still "
+                            "take to be within goal_tolerance", min=0.0)
+
+
+class ArmAdapterNode(Node):
+    """FollowWaypoints -> planned joint trajectory -> a joint trajectory controller."""
+
+    def __init__(self, **node_kwargs) -> None:
+        super().__init__("arm_adapter", **node_kwargs)
+        self.settings = s = declare_typed_parameters(self, ArmAdapterSettings)
+        self.get_logger().info(f"settings: {describe(s)}")
+        self.base = kin.pose_matrix(s.base_pose or None)  # ValueError names a bad pose
+        if len(s.workspace_min) != 3 or len(s.workspace_max) != 3:
+            raise ValueError("workspace_min / workspace_max are 3 numbers each")
+        self.box = kin.WorkspaceBox(tuple(s.workspace_min), tuple(s.workspace_max))
+        self.limits = kin.ArmLimits(velocity_scale=s.velocity_scale)
+        self.plan_settings = kin.PlanSettings(cartesian_speed=s.cartesian_speed)
+        self.joint_names = tuple(f"{s.joint_prefix}_joint{i}" for i in range(1, 8))
+        self._state: np.ndarray | None = None  # latest joint positions (joint_names order)
+        self._state_cv = threading.Condition()
+        self._last_end: np.ndarray | None = None  # dry run: where the last plan left the arm
+        self._busy = threading.Lock()  # one arm: one trajectory at a time
+        io = ReentrantCallbackGroup()  # delivered while a goal waits
+        self.create_subscription(JointState, "joint_states", self._on_joint_states,
+                                 qos_profile_sensor_data, callback_group=io)
+        self.controller_pub = self.create_publisher(JointTrajectory, CONTROLLER_TOPIC,
+                                                    RELIABLE_QOS)
+        self.planned_pub = self.create_publisher(JointTrajectory, "planned_trajectory",
+                                                 LATCHED_QOS)
+        self.path_pub = self.create_publisher(Path, "planned_path", LATCHED_QOS)
+        self._gripper = None
+        if not s.dry_run and s.gripper_action:
+            try:
+                from control_msgs.action import GripperCommand
+            except ImportError as err:
+                raise RuntimeError(
+                    f"gripper_action {s.gripper_action!r} needs control_msgs (a ROS install "
+                    "with ros2_control / franka_ros2); set gripper_action:='' to drive the arm "
+                    "without the hand") from err
+            self._gripper_type = GripperCommand
+            self._gripper = ActionClient(self, GripperCommand, s.gripper_action,
+                                         callback_group=io)
+        self._server = ActionServer(
+            self, FollowWaypoints, "follow_waypoints", execute_callback=self._execute,
+            goal_callback=lambda _g: GoalResponse.ACCEPT,
+            cancel_callback=lambda _g: CancelResponse.REJECT,  # a trial is atomic
+            callback_group=MutuallyExclusiveCallbackGroup())
+        mode = "dry run: plans only" if s.dry_run else f"live: {CONTROLLER_TOPIC}"
+        self.get_logger().info(f"arm adapter up ({mode}; joints {self.joint_names[0]}..7)")
+
+    # -- joint states ----------------------------------------------------------------------
+    def _on_joint_states(self, msg: JointState) -> None:
+        pos = dict(zip(msg.name, msg.position, strict=False))
+        if all(n in pos for n in self.joint_names):
+            with self._state_cv:
+                self._state = np.array([pos[n] for n in self.joint_names])
+                self._state_cv.notify_all()
+
+    def _joints(self, timeout: float) -> np.ndarray | None:
+        with self._state_cv:
+            self._state_cv.wait_for(lambda: self._state is not None, timeout)
+            return None if self._state is None else self._state.copy()
+
+    # -- the action ------------------------------------------------------------------------
+    def _execute(self, goal_handle) -> FollowWaypoints.Result:
+        goal = goal_handle.request
+        res = FollowWaypoints.Result(reached=False, valid=False, contact_joint=-1)
+
+        def refuse(why: str) -> FollowWaypoints.Result:
+            self.get_logger().error(f"trajectory refused: {why}")
+            res.message = why
+            goal_handle.abort()
+            return res
+
+        with self._busy:
+            try:
+                W, acts = self._waypoints(goal)
+            except ValueError as err:
+                return refuse(str(err))
+            s = self.settings
+            q0 = self._joints(s.joint_state_timeout_s)
+            if q0 is None and not s.dry_run:
+                return refuse(f"no joint_states with {', '.join(self.joint_names)} within "
+                              f"{s.joint_state_timeout_s:.1f} s: where is the arm?")
+            if q0 is None:
+                q0 = self._last_end if self._last_end is not None else kin.Q_READY
+            t0 = time.perf_counter()
+            plan = kin.plan_trajectory(W, self.base, q0, self.limits, self.box,
+                                       self.plan_settings, dwell_at=acts)
+            took = time.perf_counter() - t0
+            if not plan:
+                return refuse(f"unreachable: {plan.reason}; nothing was sent to the arm")
+            self._publish_plan(plan)
+            summary = (f"{len(plan.times)} points, {plan.duration:.1f} s, planned in "
+                       f"{1000 * took:.0f} ms")
+            if s.dry_run:
+                self._last_end = plan.positions[-1]
+                res.message = f"dry run: trajectory planned ({summary}), not executed"
+                self.get_logger().info(res.message)
+                goal_handle.succeed()
+                return res
+            return self._run(goal_handle, goal, plan, acts, res, refuse, summary)
+
+    def _waypoints(self, goal: FollowWaypoints.Goal) -> tuple[np.ndarray, list[int]]:
+        if goal.header.frame_id not in ("", self.settings.frame_id):
+            raise ValueError(f"waypoints are in frame {goal.header.frame_id!r}; this arm works "
+                             f"in {self.settings.frame_id!r}")
+        if not goal.waypoints or len(goal.gripper) != len(goal.waypoints):
+            raise ValueError(f"{len(goal.waypoints)} waypoints with {len(goal.gripper)} "
+                             "gripper commands")
+        W = np.tile(np.eye(4), (len(goal.waypoints), 1, 1))
+        for k, pose in enumerate(goal.waypoints):
+            W[k, :3, 3], W[k, :3, :3] = from_pose(pose)
+        return W, [k for k, g in enumerate(goal.gripper) if g != GRIPPER_KEEP]
+
+    def _run(self, goal_handle, goal, plan: kin.JointPlan, acts: list[int], res, refuse,
+             summary: str) -> FollowWaypoints.Result:
+        """Live: the gripper's start state, then each piece to the controller and the
+        gripper's command at its end; every piece checked on joint_states."""
+        n = len(goal.waypoints)
+        why = self._grip(goal.initial_gripper)
+        if why:
+            return refuse(why)
+        for first, last in plan.split(acts):
+            self.controller_pub.publish(self._trajectory_msg(plan, first, last))
+            start = time.monotonic()
+            for i in range(first + 1, last + 1):  # feedback as the waypoints are passed
+                k = int(plan.waypoint[i])
+                if k >= 0:
+                    time.sleep(max(0.0, plan.times[i] - plan.times[first]
+                                   - (time.monotonic() - start)))
+                    goal_handle.publish_feedback(FollowWaypoints.Feedback(
+                        waypoint=k, num_waypoints=n))
+            deadline = start + plan.times[last] - plan.times[first] + self.settings.settle_s
+            err = np.inf
+            while True:
+                q = self._joints(0.0)
+                err = np.inf if q is None else float(np.abs(q - plan.positions[last]).max())
+                if err <= self.settings.goal_tolerance or time.monotonic() > deadline:
+                    break
+                time.sleep(0.02)
+            if err > self.settings.goal_tolerance:
+                return refuse(f"the arm did not reach point {last} of the trajectory (joint "
+                              f"error {err:.3f} rad on joint_states after "
+                              f"{deadline - start:.1f} s): is {CONTROLLER_TOPIC} a running "
+                              "joint trajectory controller?")
+            k = int(plan.waypoint[last])
+            if k >= 0 and goal.gripper[k] != GRIPPER_KEEP:
+                why = self._grip(goal.gripper[k])
+                if why:
+                    return refuse(why)
+        goal_handle.publish_feedback(FollowWaypoints.Feedback(waypoint=n, num_waypoints=n))
+        res.reached = res.valid = True
+        res.message = ""
+        self.get_logger().info(f"trajectory executed ({summary})")
+        goal_handle.succeed()
+        return res
+
+    def _grip(self, command: int) -> str:
+        """Drive the hand (open / close); the reason on failure, '' when done or no hand."""
+        if command not in (GRIPPER_OPEN, GRIPPER_CLOSE):
+            return ""
+        if self._gripper is None:
+            self.get_logger().warning(f"gripper command {command} skipped: no gripper_action")
+            return ""
+        s = self.settings
+        if not self._gripper.wait_for_server(timeout_sec=s.gripper_timeout_s):
+            return f"gripper action {s.gripper_action!r} is not available"
+        goal = self._gripper_type.Goal()
+        goal.command.position = s.gripper_open_position if command == GRIPPER_OPEN else 0.0
+        goal.command.max_effort = s.gripper_max_effort
+        done = threading.Event()
+        sent = self._gripper.send_goal_async(goal)
+        sent.add_done_callback(lambda _f: done.set())
+        if not done.wait(s.gripper_timeout_s) or not sent.result().accepted:
+            return "the gripper did not accept the command"
+        done.clear()
+        result = sent.result().get_result_async()
+        result.add_done_callback(lambda _f: done.set())
+        if not done.wait(s.gripper_timeout_s):
+            return "the gripper did not finish in time"
+        return ""  # a grasp that closes on nothing is not an error: the outcome says so
+
+    # -- messages --------------------------------------------------------------------------
+    def _trajectory_msg(self, plan: kin.JointPlan, first: int, last: int) -> JointTrajectory:
+        """Points ``first + 1 .. last`` timed from ``first`` (the state the arm is in): a
+        zero stamp, so the controller starts it on arrival."""
+        msg = JointTrajectory(joint_names=list(self.joint_names))
+        for i in range(first + 1, last + 1):
+            t = float(plan.times[i] - plan.times[first])
+            msg.points.append(JointTrajectoryPoint(
+                positions=[float(x) for x in plan.positions[i]],
+                time_from_start=DurationMsg(sec=int(t), nanosec=int(round((t % 1) * 1e9)))))
+        return msg
+
+    def _publish_plan(self, plan: kin.JointPlan) -> None:
+        stamp = self.get_clock().now().to_msg()
+        full = self._trajectory_msg(plan, 0, len(plan.times) - 1)
+        full.points.insert(0, JointTrajectoryPoint(
+            positions=[float(x) for x in plan.positions[0]], time_from_start=DurationMsg()))
+        full.header.stamp, full.header.frame_id = stamp, self.settings.frame_id
+        self.planned_pub.publish(full)
+        path = Path()
+        path.header.stamp, path.header.frame_id = stamp, self.settings.frame_id
+        for T in plan.wrist:
+            ps = PoseStamped(pose=to_pose(T[:3, 3], T[:3, :3]))
+            ps.header = path.header
+            path.poses.append(ps)
+        self.path_pub.publish(path)
+
+
+def main(args: list[str] | None = None) -> None:
+    """Run the adapter; multi-threaded so joint_states arrive while a goal waits."""
+    run_node(ArmAdapterNode, args, threads=3)
+
+
+if __name__ == "__main__":
+    main()
