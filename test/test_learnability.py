@@ -68,3 +68,28 @@ def test_learnability_refuses_an_empty_pool(setup):
                              categories=("door",))
     with pytest.raises(ValueError, match="no push interactions of door"):
         run_learnability(cfg)
+
+
+def test_per_category_cli_writes_one_curve_per_category(setup):
+    """``w2e learnability --per-category`` as typed: each category fine-tuned on its own
+    interactions, every category's curve in one table."""
+    import subprocess
+    import sys
+
+    d = setup
+    out = d / "percat"
+    r = subprocess.run(
+        [sys.executable, "-m", "w2e_ros.cli", "learnability", "--model", str(d / "model.pt"),
+         "--pool-data", str(d / "pool"), "--test-data", str(d / "test"), "--categories",
+         *NOVEL, "--sizes", "0", "1000", "--seeds", "0", "--selections", "random",
+         "--per-category", "--finetune-steps", "40", "--anchor", "0", "--threads", "1",
+         "--out", str(out)], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    summary = json.loads((out / "per_category.json").read_text())
+    assert set(summary["curves"]) == set(NOVEL)
+    for c in NOVEL:  # its own pool only: 3 observations x 24 interactions of c
+        rows = [json.loads(s) for s in (out / c / "rows.jsonl").read_text().splitlines()]
+        assert [row["n"] for row in rows] == [0, 72]
+    table = (out / "per_category.md").read_text()
+    assert all(f"| {c} |" in table for c in NOVEL) and "N = 72" in table
+    assert (out / "per_category_push.png").stat().st_size > 0
