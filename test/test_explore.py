@@ -9,7 +9,7 @@ from synthetic import Cloud, RuleWorld, synthetic_data
 
 from w2e_ros.core.config import ExploreConfig, ModelConfig
 from w2e_ros.core.explore import Executed, explore, sample_candidates
-from w2e_ros.core.feasibility import approach_clear
+from w2e_ros.core.feasibility import Arm, approach_clear, arm_reachable
 from w2e_ros.core.finetune import W2EExplorer
 from w2e_ros.core.model import W2EModel
 from w2e_ros.core.primitives import TrialResult
@@ -270,6 +270,30 @@ def test_check_approach_drops_the_candidates_whose_approach_runs_into_the_cloud(
                for t, a in executed[True])
     assert not all(approach_clear(novel.points[t], a.point, a.up, a.forward, "pull")[0]
                    for t, a in executed[False])
+
+
+def test_a_panda_arm_drops_the_candidates_it_cannot_reach(novel):
+    """arm panda (planner parameter): the loop draws the same candidates, drops those whose
+    waypoints the arm at its base pose cannot follow, and executes only reachable ones."""
+    arm = Arm("panda", base_pose=(0.95, 0.0, -0.3, 0.0, 0.0, 1.0, 0.0))  # facing the object
+    seen, executed = {}, {}
+    for a in (None, arm):
+        model, world = FakeModel([0.0] * 3, [0.0] * 3), TaggedWorld(novel)
+        cfg = _fake_cfg(budget=1, round_size=3, per_object_per_round=1, points_per_object=16,
+                        dirs_per_point=4)
+        res = explore(model, world, [0, 1, 2], get_strategy("similarity"), cfg, "pull",
+                      rng=np.random.default_rng(0), **({"arm": a} if a else {}))
+        assert res.stopped == "budget" and len(res.steps) == 3
+        seen[a is not None], executed[a is not None] = [c for c, _ in model.seen], world.executed
+    dropped = 0
+    for obj, (a, b) in enumerate(zip(seen[False][0], seen[True][0], strict=True)):
+        pts = novel.points[obj]
+        ok = arm_reachable(pts[a.point_index], a.up, a.forward, "pull", arm)
+        np.testing.assert_array_equal(b.point_index, a.point_index[ok])
+        dropped += int((~ok).sum())
+    assert dropped > 0
+    assert all(arm_reachable(x.point, x.up, x.forward, "pull", arm)[0]
+               for _, x in executed[True])
 
 
 def test_oracle_executes_the_pool_candidates_the_model_gets_most_wrong(novel):
