@@ -385,6 +385,9 @@ def run(a: argparse.Namespace) -> int:
         raise KeyboardInterrupt
 
     signal.signal(signal.SIGTERM, on_term)
+    # started in the background of a script, a process inherits SIGINT ignored (POSIX): Ctrl-C /
+    # kill -INT must still stop the stack
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     stack = Stack(nodes=a.nodes, params=a.params, namespace=a.namespace, env=env,
                   ready_timeout=a.timeout, respawn=a.respawn, respawn_limit=a.respawn_limit,
                   respawn_delay=a.respawn_delay)
