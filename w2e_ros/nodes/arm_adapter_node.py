@@ -31,7 +31,7 @@ import numpy as np
 from builtin_interfaces.msg import Duration as DurationMsg
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
-from rclpy.action import ActionClient, ActionServer, CancelResponse, GoalResponse
+from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
@@ -40,6 +40,7 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from w2e_msgs.action import FollowWaypoints
 
 from w2e_ros.core import kinematics as kin
+from w2e_ros.ros.action_client import LockedActionClient
 from w2e_ros.ros.conversions import from_pose, to_pose
 from w2e_ros.ros.params import declare_typed_parameters, describe, param
 from w2e_ros.ros.qos import LATCHED_QOS, RELIABLE_QOS
@@ -121,7 +122,7 @@ class ArmAdapterNode(Node):
                     "with ros2_control / franka_ros2); set gripper_action:='' to drive the arm "
                     "without the hand") from err
             self._gripper_type = GripperCommand
-            self._gripper = ActionClient(self, GripperCommand, s.gripper_action,
+            self._gripper = LockedActionClient(self, GripperCommand, s.gripper_action,
                                          callback_group=io)
         self._server = ActionServer(
             self, FollowWaypoints, "follow_waypoints", execute_callback=self._execute,

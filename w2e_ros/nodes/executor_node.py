@@ -31,7 +31,7 @@ import time
 from dataclasses import dataclass, replace
 
 import numpy as np
-from rclpy.action import ActionClient, ActionServer, CancelResponse, GoalResponse
+from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.duration import Duration
 from rclpy.node import Node
@@ -47,6 +47,7 @@ from w2e_ros.core.outcome import (
     judge_clouds,
 )
 from w2e_ros.core.primitives import Action
+from w2e_ros.ros.action_client import LockedActionClient
 from w2e_ros.ros.conversions import (
     from_xyz,
     interaction_to_action,
@@ -121,7 +122,7 @@ class GripperExecutorNode(Node):
         if s.outcome_source == "clouds":  # its own group: delivered while a goal waits
             self.create_subscription(SegmentedObjects, "objects", self._on_objects, LATCHED_QOS,
                                      callback_group=MutuallyExclusiveCallbackGroup())
-        self._robot = ActionClient(self, FollowWaypoints, self.settings.robot_action,
+        self._robot = LockedActionClient(self, FollowWaypoints, self.settings.robot_action,
                                    callback_group=ReentrantCallbackGroup())
         self._server = ActionServer(
             self, ExecuteInteraction, "execute_interaction", execute_callback=self._execute,

@@ -36,7 +36,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from rclpy.action import ActionClient, ActionServer, CancelResponse, GoalResponse
+from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.action.server import ServerGoalHandle
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
@@ -62,6 +62,7 @@ from w2e_ros.core.primitives import PRIMITIVES, Action, TrialResult
 from w2e_ros.core.session_log import SessionRun, open_session
 from w2e_ros.core.sim_world import stable_seed
 from w2e_ros.core.strategies import Scored, get_strategy
+from w2e_ros.ros.action_client import LockedActionClient
 from w2e_ros.ros.conversions import (
     action_to_interaction,
     interaction_to_action,
@@ -338,7 +339,7 @@ class PlannerNode(Node):
         self.predict_cli = self.create_client(PredictMaps, "predict_maps", callback_group=g)
         self.update_cli = self.create_client(UpdateModel, "update_model", callback_group=g)
         self.scene_cli = self.create_client(LoadScene, "load_scene", callback_group=g)
-        self.exec_cli = ActionClient(self, ExecuteInteraction, "execute_interaction",
+        self.exec_cli = LockedActionClient(self, ExecuteInteraction, "execute_interaction",
                                      callback_group=g)
         self.create_subscription(SegmentedObjects, "objects", self.on_objects, LATCHED_QOS,
                                  callback_group=g)
