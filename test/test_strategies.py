@@ -65,3 +65,17 @@ def test_oracle_picks_what_the_model_gets_most_wrong_and_needs_labels():
         (3, 1), (0, 0), (1, 0)]
     with pytest.raises(ValueError, match="labels"):
         oracle.choose(_scored(), np.random.default_rng(0))
+
+
+def test_similarity_sampled_draws_in_proportion_to_unfamiliarity():
+    """Unfamiliarity 1 - s: on one object with s = (0.2, 0.6, 1.0) the picks come out near
+    0.8 : 0.4 : 0 (the paper's rule would take the first every time)."""
+    scored = [Scored(affordance=np.zeros(3), similarity=np.array([0.2, 0.6, 1.0]))]
+    rng = np.random.default_rng(0)
+    rule = get_strategy("similarity_sampled")
+    picks = np.array([rule.choose(scored, rng)[1] for _ in range(3000)])
+    share = np.bincount(picks, minlength=3) / len(picks)
+    assert share[0] == pytest.approx(2 / 3, abs=0.03)
+    assert share[1] == pytest.approx(1 / 3, abs=0.03)
+    assert share[2] < 0.002
+    assert rule.stops_at_bar

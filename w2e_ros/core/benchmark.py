@@ -55,6 +55,7 @@ METHOD_SPEC: dict[str, tuple[str, str]] = {
     "where2act": ("where2act", "where2act"),
     "nosim": ("w2e", "nosim"),
     "similarity": ("w2e", "similarity"),
+    "similarity_sampled": ("w2e", "similarity_sampled"),
     "oracle": ("w2e", "oracle"),
     "fulldata": ("fulldata", "none"),
 }

@@ -3,8 +3,9 @@
 A strategy ranks every candidate action of every object it may touch (lower key = explore
 first) and the loop takes a round's worth of the best ones over all objects, at most a few
 per object. ``similarity`` is Where2Explore's rule (lowest similarity = least familiar
-geometry); ``where2act`` / ``nosim`` explore where the affordance is least certain (closest
-to 0.5), with the Where2Act baseline model or with ours; ``random`` ranks at random;
+geometry), ``similarity_sampled`` draws in proportion to unfamiliarity instead;
+``where2act`` / ``nosim`` explore where the affordance is least certain (closest to 0.5),
+with the Where2Act baseline model or with ours; ``random`` ranks at random;
 ``oracle`` uses hindsight labels from the simulator and picks the actions the current model
 gets most wrong (the most any selection rule can win); ``none`` does not explore.
 """
@@ -43,6 +44,12 @@ class Strategy:
             return rng.random(len(s.affordance))
         if self.name == "similarity":
             return s.similarity
+        if self.name == "similarity_sampled":
+            # drawn in proportion to unfamiliarity (1 - similarity), without replacement
+            # (Efraimidis-Spirakis keys): the paper's rule always takes the extreme, which on
+            # a pull is the model's most confident false positive, again and again
+            w = np.clip(1.0 - s.similarity, 1e-6, None)
+            return -np.log(rng.random(len(w)) + 1e-12) / w
         if self.name == "oracle":
             if labels is None:
                 raise ValueError("the oracle needs hindsight labels of the candidates")
@@ -74,6 +81,7 @@ class Strategy:
 
 STRATEGIES: dict[str, Strategy] = {
     "similarity": Strategy("similarity", stops_at_bar=True),
+    "similarity_sampled": Strategy("similarity_sampled", stops_at_bar=True),
     "where2act": Strategy("where2act"),
     "nosim": Strategy("nosim"),
     "random": Strategy("random"),
