@@ -222,7 +222,7 @@ class W2EExplorer:
             return self._feat_table[torch.from_numpy(rows.fidx).to(self.device)]
         uniq, inv = np.unique(rows.cloud, return_inverse=True)
         pts = [self.clouds[c] for c in uniq]
-        if self.heads_only or not grad:
+        if not grad:
             feats = torch.stack(self.cloud_features(pts))
         else:
             feats = self.model.encode(torch.from_numpy(np.stack(pts)).to(self.device))
@@ -253,51 +253,64 @@ class W2EExplorer:
         pick = self.rng.choice(clouds, size=min(len(clouds), n), replace=False)
         return rows.take(np.flatnonzero(np.isin(rows.cloud, pick)))
 
+    def _parts(self, explored: Rows, replay: Rows) -> list[tuple[Rows, float, RunningAccuracy]]:
+        """The non-empty row sets of a step, with their loss weight and accuracy counters."""
+        return [(r, w, acc) for r, w, acc in ((explored, 1.0, self.acc),
+                                              (replay, self.cfg.replay_weight, self.replay_acc))
+                if len(r)]
+
+    def _affordance_loss(self, r: Rows, logit: torch.Tensor, w: float) -> torch.Tensor:
+        """Class-balanced BCE on the rows that train the affordance head (0 when none)."""
+        if not (r.aff.any() and self._train_affordance):
+            return torch.zeros((), device=self.device)
+        m = torch.from_numpy(r.aff).to(self.device)
+        y = torch.from_numpy(r.success.astype(np.float32)).to(self.device)
+        wt = torch.from_numpy(balanced_weights(r.success[r.aff])).to(self.device)
+        return w * F.binary_cross_entropy_with_logits(logit[m], y[m], weight=wt)
+
+    def _similarity_loss(self, r: Rows, f: torch.Tensor, logit: torch.Tensor, w: float,
+                         acc: RunningAccuracy) -> torch.Tensor:
+        """Soft-target BCE of the similarity head (on detached features) to the running
+        accuracy, counting the affordance ``logit`` given as this step's prediction."""
+        if not r.sim.any():
+            return torch.zeros((), device=self.device)
+        right = (logit.detach().cpu().numpy() > 0) == r.success
+        target = torch.as_tensor(acc.update(r.key[r.sim], right[r.sim]), dtype=torch.float32,
+                                 device=self.device)
+        m = torch.from_numpy(r.sim).to(self.device)
+        a = torch.from_numpy(r.action).to(self.device)[m]
+        return w * F.binary_cross_entropy_with_logits(self.model.sim_head(f[m].detach(), a),
+                                                      target)
+
+    def _anchor_loss(self) -> torch.Tensor:
+        if not self._anchor:
+            return torch.zeros((), device=self.device)
+        return self.cfg.anchor * sum(((p - p0) ** 2).sum() for p, p0 in self._anchor)
+
+    def _adam(self, loss: torch.Tensor) -> None:
+        self.opt.zero_grad(set_to_none=True)
+        if loss.requires_grad:
+            loss.backward()
+            self.opt.step()
+
     def _step(self, explored: Rows, replay: Rows) -> dict[str, float]:
-        """One affordance step, then one similarity step (correctness counted after the
-        affordance step, as the reference does)."""
-        cfg = self.cfg
-        parts = [(explored, 1.0), (replay, cfg.replay_weight)]
-        parts = [(r, w) for r, w in parts if len(r)]
+        """Frozen encoder: one affordance step, then one similarity step (correctness counted
+        after the affordance step, as the reference does)."""
+        parts = self._parts(explored, replay)
         self.model.train()
-        feats = [self._row_features(r, grad=True) for r, _ in parts]
-        loss_aff = torch.zeros((), device=self.device)
-        for (r, w), f in zip(parts, feats, strict=True):
-            if r.aff.any() and self._train_affordance:
-                m = torch.from_numpy(r.aff).to(self.device)
-                y = torch.from_numpy(r.success.astype(np.float32)).to(self.device)
-                wt = torch.from_numpy(balanced_weights(r.success[r.aff])).to(self.device)
-                logit = self.model.aff_head(f[m], torch.from_numpy(r.action).to(self.device)[m])
-                loss_aff = loss_aff + w * F.binary_cross_entropy_with_logits(
-                    logit, y[m], weight=wt)
-        if self._anchor:
-            loss_aff = loss_aff + self.cfg.anchor * sum(
-                ((p - p0) ** 2).sum() for p, p0 in self._anchor)
-        self.opt.zero_grad(set_to_none=True)
-        if loss_aff.requires_grad:
-            loss_aff.backward()
-            self.opt.step()
-        if not self.heads_only:  # the encoder just changed: features of the new weights
-            feats = [self._row_features(r, grad=True) for r, _ in parts]
-        loss_sim = torch.zeros((), device=self.device)
-        accs = [self.acc, self.replay_acc][:len(parts)] if len(explored) else [self.replay_acc]
-        for (r, w), f, acc in zip(parts, feats, accs, strict=True):
-            if not r.sim.any():
-                continue
-            m = torch.from_numpy(r.sim).to(self.device)
-            a = torch.from_numpy(r.action).to(self.device)[m]
-            fm = f[m] if not self.heads_only else f[m].detach()
-            with torch.no_grad():
-                pred = (self.model.aff_head(fm.detach(), a) > 0).cpu().numpy()
-            right = pred == r.success[r.sim]
-            target = torch.as_tensor(acc.update(r.key[r.sim], right), dtype=torch.float32,
-                                     device=self.device)
-            logit = self.model.sim_head(fm, a)
-            loss_sim = loss_sim + w * F.binary_cross_entropy_with_logits(logit, target)
-        self.opt.zero_grad(set_to_none=True)
-        if loss_sim.requires_grad:
-            loss_sim.backward()
-            self.opt.step()
+        feats = [self._row_features(r, grad=False) for r, _, _ in parts]
+        acts = [torch.from_numpy(r.action).to(self.device) for r, _, _ in parts]
+        loss_aff = self._anchor_loss() + sum(
+            (self._affordance_loss(r, self.model.aff_head(f, a), w)
+             for (r, w, _), f, a in zip(parts, feats, acts, strict=True)),
+            torch.zeros((), device=self.device))
+        self._adam(loss_aff)
+        with torch.no_grad():
+            logits = [self.model.aff_head(f, a) for f, a in zip(feats, acts, strict=True)]
+        loss_sim = sum((self._similarity_loss(r, f, lg, w, acc)
+                        for (r, w, acc), f, lg in zip(parts, feats, logits, strict=True)),
+                       torch.zeros((), device=self.device))
+        self._adam(loss_sim)
         self.model.eval()
         la, ls = float(loss_aff.detach()), float(loss_sim.detach())
         return {"loss_aff": la, "loss_sim": ls, "loss": la + ls}
@@ -307,41 +320,19 @@ class W2EExplorer:
         affordance loss plus the similarity loss (the similarity head reads detached
         features, so only the affordance loss moves the encoder; its target counts the
         predictions before the step)."""
-        parts = [(r, w, acc) for r, w, acc in ((explored, 1.0, self.acc),
-                                                (replay, self.cfg.replay_weight,
-                                                 self.replay_acc)) if len(r)]
+        parts = self._parts(explored, replay)
         rows = parts[0][0] if len(parts) == 1 else parts[0][0].cat(parts[1][0])
         self.model.train()
         f_all = self._row_features(rows, grad=True)
-        loss_aff = torch.zeros((), device=self.device)
-        loss_sim = torch.zeros((), device=self.device)
+        loss_aff, loss_sim = self._anchor_loss(), torch.zeros((), device=self.device)
         start = 0
         for r, w, acc in parts:
             f = f_all[start:start + len(r)]
             start += len(r)
-            a = torch.from_numpy(r.action).to(self.device)
-            logit = self.model.aff_head(f, a)
-            if r.aff.any() and self._train_affordance:
-                m = torch.from_numpy(r.aff).to(self.device)
-                y = torch.from_numpy(r.success.astype(np.float32)).to(self.device)
-                wt = torch.from_numpy(balanced_weights(r.success[r.aff])).to(self.device)
-                loss_aff = loss_aff + w * F.binary_cross_entropy_with_logits(
-                    logit[m], y[m], weight=wt)
-            if r.sim.any():
-                right = (logit.detach().cpu().numpy() > 0) == r.success
-                target = torch.as_tensor(acc.update(r.key[r.sim], right[r.sim]),
-                                         dtype=torch.float32, device=self.device)
-                m = torch.from_numpy(r.sim).to(self.device)
-                loss_sim = loss_sim + w * F.binary_cross_entropy_with_logits(
-                    self.model.sim_head(f[m].detach(), a[m]), target)
-        if self._anchor:
-            loss_aff = loss_aff + self.cfg.anchor * sum(
-                ((p - p0) ** 2).sum() for p, p0 in self._anchor)
-        loss = loss_aff + loss_sim
-        self.opt.zero_grad(set_to_none=True)
-        if loss.requires_grad:
-            loss.backward()
-            self.opt.step()
+            logit = self.model.aff_head(f, torch.from_numpy(r.action).to(self.device))
+            loss_aff = loss_aff + self._affordance_loss(r, logit, w)
+            loss_sim = loss_sim + self._similarity_loss(r, f, logit, w, acc)
+        self._adam(loss_aff + loss_sim)
         self.model.eval()
         la, ls = float(loss_aff.detach()), float(loss_sim.detach())
         return {"loss_aff": la, "loss_sim": ls, "loss": la + ls}
