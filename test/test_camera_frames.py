@@ -20,6 +20,7 @@ rclpy = pytest.importorskip("rclpy")
 pytest.importorskip("w2e_msgs.msg", reason="w2e_msgs not built: make interfaces")
 
 from rclpy.parameter import Parameter  # noqa: E402
+from scenes import two_cabinets_on_a_table  # noqa: E402
 from sensor_msgs.msg import PointCloud2, PointField  # noqa: E402
 
 from w2e_ros.ros.conversions import quaternion_from_matrix  # noqa: E402
@@ -46,24 +47,10 @@ class Scene:
     """The camera's hits on two cabinets and a table, in the world and in the optical frame."""
 
     def __init__(self, width: int = 448, height: int = 448, missing: float = 0.03) -> None:
-        from sim_bridge.camera import CameraSettings, PosedMesh, make_camera, view_pose
-        from sim_bridge.geometry import box_mesh, make_pose
-        from sim_bridge.objects import make_object
-        from sim_bridge.world import ObjectWorld
+        from sim_bridge.camera import CameraSettings
 
-        models = [make_object("cabinet", 0), make_object("cabinet", 1)]
-        poses, y = [], 0.0
-        for m in models:  # side by side along y, standing on z = 0
-            lo, hi = m.bounds()
-            poses.append(make_pose(translation=(0.0, y - lo[1], -lo[2])))
-            y += hi[1] - lo[1] + 0.3
-        world = ObjectWorld(models, poses)
-        meshes = world.posed_meshes(world.joint_limits[:, 0].copy())
-        v, t = box_mesh([1.5, y / 2 + 0.5, 0.025])
-        meshes.append(PosedMesh(v + [0.0, y / 2, -0.025], t, -1, -1, False))
         settings = CameraSettings(width=width, height=height)
-        camera_pose = view_pose(np.array([0.0, y / 2, 0.4]), 30, 30, 7.0)
-        obs = make_camera(settings).capture(meshes, camera_pose)
+        obs, camera_pose = two_cabinets_on_a_table(settings)
 
         # the optical frame's pose in the world: what the user measures and gives the node
         self.rotation = camera_pose[:3, :3] @ OPTICAL_IN_CAMERA

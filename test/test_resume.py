@@ -13,7 +13,6 @@ The models have random weights (as in test_stack_integration.py): this checks th
 
 from __future__ import annotations
 
-import io
 import json
 import os
 import queue
@@ -30,6 +29,7 @@ pytest.importorskip("rclpy")
 pytest.importorskip("w2e_msgs.action", reason="w2e_msgs not built: make interfaces")
 
 import torch  # noqa: E402
+from scenes import Tee  # noqa: E402
 
 from w2e_ros.bringup import Stack  # noqa: E402
 from w2e_ros.core.model import W2EModel, save_model  # noqa: E402
@@ -127,18 +127,6 @@ rclpy.try_shutdown()
 """
 
 
-class _Tee(io.TextIOBase):
-    """Keeps the stack's prefixed output (for the assertions) and shows it with -s."""
-
-    def __init__(self) -> None:
-        self.lines: list[str] = []
-
-    def write(self, s: str) -> int:
-        self.lines.extend(s.splitlines())
-        print(s, end="")
-        return len(s)
-
-
 class ActionUser:
     """The action client process, its JSON lines read as they come."""
 
@@ -206,7 +194,7 @@ def stack(tmp_path_factory):
         ckpt[prim] = save_model(tmp / f"{prim}.pt", W2EModel(), {"method": "w2e",
                                                                  "combo": "cfw"})
     env = ros_env(domain_id=pick_domain_id(41), log_dir=tmp / "ros_log")
-    out = _Tee()
+    out = Tee()
     log_dir = tmp / "exploration"
     extra = {
         "inference": ["-p", f"push_checkpoint:={ckpt['push']}",

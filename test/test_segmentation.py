@@ -102,24 +102,9 @@ def test_ground_truth_labels_give_scene_ids():
 
 @pytest.mark.slow
 def test_simulator_cloud_of_two_cabinets_on_a_table():
-    from sim_bridge.camera import CameraSettings, PosedMesh, make_camera, view_pose
-    from sim_bridge.geometry import box_mesh, make_pose
-    from sim_bridge.objects import make_object
-    from sim_bridge.world import ObjectWorld
+    from scenes import two_cabinets_on_a_table
 
-    models = [make_object("cabinet", 0), make_object("cabinet", 1)]
-    poses, y = [], 0.0
-    for m in models:  # side by side along y, standing on z = 0
-        lo, hi = m.bounds()
-        poses.append(make_pose(translation=(0.0, y - lo[1], -lo[2])))
-        y += hi[1] - lo[1] + 0.3
-    world = ObjectWorld(models, poses)
-    q = world.joint_limits[:, 0].copy()
-    meshes = world.posed_meshes(q)
-    v, t = box_mesh([1.5, y / 2 + 0.5, 0.025])
-    meshes.append(PosedMesh(v + [0.0, y / 2, -0.025], t, -1, -1, False))
-    center = np.array([0.0, y / 2, 0.4])
-    obs = make_camera(CameraSettings()).capture(meshes, view_pose(center, 30, 30, 7.0))
+    obs, _ = two_cabinets_on_a_table()
 
     seg = Segmenter(_config(workspace_min=[-5, -5, -1], workspace_max=[5, 10, 5]))
     objs = seg.segment(obs.points, obs.normals)  # no labels: plane + DBSCAN

@@ -8,7 +8,6 @@ and the learning step, not the success rate.
 
 from __future__ import annotations
 
-import io
 import time
 from pathlib import Path
 
@@ -20,6 +19,7 @@ pytest.importorskip("w2e_msgs.msg", reason="w2e_msgs not built: make interfaces"
 
 import torch  # noqa: E402
 from rclpy.node import Node  # noqa: E402
+from scenes import Tee  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 
 from sim_bridge.objects import make_object  # noqa: E402
@@ -37,18 +37,6 @@ EXPLORE_INSTANCES = [30, 31]
 TEST_INSTANCES = [40, 41, 42]
 
 
-class _Tee(io.TextIOBase):
-    """Keeps the stack's prefixed output (for the assertions) and shows it with -s."""
-
-    def __init__(self) -> None:
-        self.lines: list[str] = []
-
-    def write(self, s: str) -> int:
-        self.lines.extend(s.splitlines())
-        print(s, end="")
-        return len(s)
-
-
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("stack")
@@ -59,7 +47,7 @@ def stack(tmp_path_factory):
                                                                  "combo": "cfw"})
     domain = pick_domain_id(11)
     env = ros_env(domain_id=domain, log_dir=tmp / "ros_log")
-    out = _Tee()
+    out = Tee()
     extra = {
         "inference": ["-p", f"push_checkpoint:={ckpt['push']}",
                       "-p", f"pull_checkpoint:={ckpt['pull']}",
