@@ -8,6 +8,7 @@ Each verb parses its flags here and calls one function of the core (or of the RO
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import os
 import sys
@@ -15,6 +16,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
+    from w2e_ros.core.backends import Backend
     from w2e_ros.core.config import ExploreConfig
 
 Handler = Callable[[argparse.Namespace], int | None]
@@ -41,7 +43,9 @@ def _add_collect(sub: argparse._SubParsersAction) -> None:
                    help="share of movable contacts on protruding geometry (handles, edges)")
     p.add_argument("--cone-fraction", type=float, default=0.5,
                    help="share of approach directions within 30 deg of the inward normal")
-    p.add_argument("--workers", type=int, default=2, help="parallel worker processes")
+    p.add_argument("--workers", type=int, default=2,
+                   help="parallel worker processes (local backend)")
+    _add_backend_args(p)
     p.add_argument("--obs-per-shard", type=int, default=8)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--outcome-source", choices=["joints", "clouds"], default="joints",
@@ -59,9 +63,27 @@ def _run_collect(a: argparse.Namespace) -> int:
         movable_fraction=a.movable_fraction, grasp_fraction=a.grasp_fraction,
         cone_fraction=a.cone_fraction, workers=a.workers, obs_per_shard=a.obs_per_shard,
         seed=a.seed, outcome_source=a.outcome_source)
-    summary = collect(cfg)
+    with _backend(a, a.workers) as backend:
+        summary = collect(cfg, backend)
     print(summary.table())
     return 0
+
+
+def _add_backend_args(p: argparse.ArgumentParser) -> None:
+    """Where the jobs of ``collect`` and ``benchmark`` run (w2e_ros.core.backends)."""
+    p.add_argument("--backend", default="local", choices=["local", "ray"],
+                   help="local processes, or one Ray task per job (a local Ray instance, or "
+                        "the cluster at --address)")
+    p.add_argument("--address", default=None,
+                   help="with --backend ray: the cluster to join, 'auto' (the one `ray start` "
+                        "started on this host) or HOST:PORT of its head; default: a private "
+                        "local instance")
+
+
+def _backend(a: argparse.Namespace, workers: int) -> contextlib.closing[Backend]:
+    from w2e_ros.core.backends import make_backend
+
+    return contextlib.closing(make_backend(a.backend, workers, a.address))
 
 
 def _add_train(sub: argparse._SubParsersAction) -> None:

@@ -12,6 +12,10 @@ mask), half of those on the protruding tenth of them (handles, knobs, free edges
 the approach directions within 30 deg of the inward normal, the rest uniform over the
 hemisphere. The fractions are flags of ``w2e collect`` and are stored with every shard.
 
+The shards' jobs run on a :mod:`w2e_ros.core.backends` backend: local processes
+(``--workers``) or Ray tasks (``--backend ray``, a cluster with ``--address``); the jobs
+return their data and this process writes every shard, so the files are the same either way.
+
 ``--outcome-source clouds`` labels success as a robot without joint sensors would, from the
 object's camera cloud before and after each trial (:mod:`w2e_ros.core.outcome`); the default
 ``joints`` uses the simulator's joint states. The ``motion`` column is the simulator's joint
@@ -23,19 +27,15 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
-import multiprocessing as mp
-import os
-import signal
-import threading
 import time
 from collections import defaultdict
-from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
+from w2e_ros.core.backends import Backend, LocalBackend
 from w2e_ros.core.categories import load_categories
 from w2e_ros.core.data import InteractionData
 from w2e_ros.core.primitives import Action, TrialResult
@@ -201,18 +201,24 @@ def _target_motion(res) -> float:
     return float(res.motion[res.moved_joint])
 
 
-def _run_chunk(job: tuple[CollectConfig, int, list[tuple[str, int, int]]]) -> tuple[int, str]:
+def _run_chunk(job: tuple[CollectConfig, int, list[tuple[str, int, int]]]) -> InteractionData:
+    """One shard's observations, returned to the caller, which writes the file: on a Ray
+    cluster the worker hosts need no access to ``--out``."""
     cfg, index, chunk = job
     parts = [_collect_observation(cfg, *obs) for obs in chunk]
     data = InteractionData.concat(parts)
-    data.meta = {"collect": {k: v for k, v in asdict(cfg).items() if k != "out"},
+    # what was collected, not how: the same seed gives the same shard on any backend
+    data.meta = {"collect": {k: v for k, v in asdict(cfg).items() if k not in ("out", "workers")},
                  "chunk": index}
-    path = data.save_shard(Path(cfg.out) / f"shard-{index:05d}.npz")
-    return data.num_interactions, str(path)
+    return data
 
 
-def collect(cfg: CollectConfig) -> CollectSummary:
-    """Run the collection (resuming), then summarise everything in the output directory."""
+def collect(cfg: CollectConfig, backend: Backend | None = None) -> CollectSummary:
+    """Run the collection (resuming), then summarise everything in the output directory.
+
+    ``backend`` runs the shards' jobs (default: ``cfg.workers`` local processes); each
+    shard is written here as its job returns, so progress survives an interruption."""
+    backend = backend or LocalBackend(cfg.workers)
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     settings = {k: v for k, v in asdict(cfg).items() if k not in ("out", "workers")}
@@ -231,49 +237,18 @@ def collect(cfg: CollectConfig) -> CollectSummary:
     todo = [(cfg, i, c) for i, c in enumerate(chunks)
             if not (out / f"shard-{i:05d}.npz").exists()]
     total_trials = sum(len(c) for _, _, c in todo) * cfg.interactions * len(cfg.primitives)
-    log.info("%d of %d shards to collect (%d trials) with %d workers", len(todo), len(chunks),
-             total_trials, cfg.workers)
+    log.info("%d of %d shards to collect (%d trials) on the %s backend (%d at a time)",
+             len(todo), len(chunks), total_trials, backend.name, backend.parallelism)
     summary = CollectSummary()
     t0 = time.perf_counter()
-    with tqdm(total=total_trials, unit="trial", desc="collect", smoothing=0.1) as bar:
-        if cfg.workers <= 1:
-            for job in todo:
-                n, _ = _run_chunk(job)
-                bar.update(n)
-        elif todo:
-            ctx = mp.get_context("spawn")
-            with _term_as_interrupt(), ctx.Pool(cfg.workers, initializer=_worker_init) as pool:
-                for n, _ in pool.imap_unordered(_run_chunk, todo):
-                    bar.update(n)
-                    summary.new_trials += n
+    with (tqdm(total=total_trials, unit="trial", desc="collect", smoothing=0.1) as bar,
+          contextlib.closing(backend.map(_run_chunk, todo)) as results):
+        for k, data in results:
+            data.save_shard(out / f"shard-{todo[k][1]:05d}.npz")
+            bar.update(data.num_interactions)  # tqdm shows the rate and the ETA
+            summary.new_trials += data.num_interactions
     summary.seconds = time.perf_counter() - t0
-    if cfg.workers <= 1:
-        summary.new_trials = total_trials
     for shard in sorted(out.glob("shard-*.npz")):
         if not shard.name.endswith(".tmp.npz"):
             summary.add(InteractionData.load_shard(shard))
     return summary
-
-
-@contextlib.contextmanager
-def _term_as_interrupt() -> Iterator[None]:
-    """SIGTERM (``kill``, a supervisor stopping the job) unwinds like Ctrl-C, so the pool's
-    ``with`` block terminates the workers instead of leaving them orphaned; finished shards
-    stay on disk and a re-run resumes from them."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def _raise(signum: int, frame: object) -> None:
-        raise KeyboardInterrupt(f"signal {signum}")
-
-    previous = signal.signal(signal.SIGTERM, _raise)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-
-
-def _worker_init() -> None:
-    # one thread per worker process: the workers already use every core
-    os.environ["OMP_NUM_THREADS"] = "1"
