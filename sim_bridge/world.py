@@ -172,27 +172,19 @@ class ObjectWorld:
         return self._camera.capture(self.posed_meshes(qpos), camera_pose)
 
     # -- trials ----------------------------------------------------------------------------
-    def run_trial(self, qpos: np.ndarray, action: Action, seed: int = 0) -> TrialResult:
-        """Execute one primitive from state ``qpos`` in a fresh scene.
-
-        ``seed`` is accepted for API stability; the trial itself has no randomness, so the
-        same (qpos, action) always gives the same, bit-identical result.
-        """
-        from sim_bridge.physics import build_gripper, build_object, make_scene
-
-        del seed
-        s = self.settings
-        qpos = np.asarray(qpos, float)
-        point = np.asarray(action.point, float)
-        R = gripper_frame(action)
-        up = R[:, 2]
+    def target_of(self, qpos: np.ndarray, point) -> tuple[int, int, int, str]:
+        """(object id, link id, world joint index or -1, link name) of the part under
+        ``point``: what a trial's success is judged on."""
         obj_id, link_id, _ = self.locate(qpos, point)
         model = self.models[obj_id]
         local_joint = model.driving_joint(link_id)
         target_joint = int(self._offsets[obj_id] + local_joint) if local_joint >= 0 else -1
-        target_link = model.links[link_id].name
+        return obj_id, link_id, target_joint, model.links[link_id].name
 
-        scene = make_scene(s.timestep)
+    def build(self, scene, qpos: np.ndarray) -> list:
+        """Every object into ``scene`` at its pose and ``qpos`` (BuiltObject list)."""
+        from sim_bridge.physics import build_object
+
         built = []
         for k, (m, p, q) in enumerate(
             zip(self.models, self.poses, self.split_qpos(qpos), strict=True)
@@ -200,32 +192,93 @@ class ObjectWorld:
             bo = build_object(scene, m, p, name_prefix=f"{k}:")
             bo.set_qpos(q)
             built.append(bo)
-        target_comp = built[obj_id].links[link_id]
-        link_start = sapien_to_pose(target_comp.entity_pose)
-        local_point = transform_points(np.linalg.inv(link_start), point[None])[0]
-        waypoints, fingers = schedule(action.primitive)
-        gripper = build_gripper(scene, make_pose(R, point - PUSH_START * up), fingers)
+        return built
+
+    def touch_probe(self, scene, robot_prefix: str):
+        """A function returning the (object id, link id) pairs that a body named
+        ``robot_prefix...`` touches now (impulse above ``touch_impulse`` or penetrating)."""
         names = {
             f"{k}:{lk.name}": (k, i)
             for k, m in enumerate(self.models)
             for i, lk in enumerate(m.links)
         }
+        impulse = self.settings.touch_impulse
 
         def touches() -> set[tuple[int, int]]:
             out = set()
             for c in scene.get_contacts():
                 a, b = c.bodies[0].name, c.bodies[1].name
-                if a.startswith("gripper/") == b.startswith("gripper/"):
+                if a.startswith(robot_prefix) == b.startswith(robot_prefix):
                     continue
-                other = b if a.startswith("gripper/") else a
+                other = b if a.startswith(robot_prefix) else a
                 if other not in names:
                     continue
                 if any(
-                    np.linalg.norm(pt.impulse) > s.touch_impulse or pt.separation < -1e-4
+                    np.linalg.norm(pt.impulse) > impulse or pt.separation < -1e-4
                     for pt in c.points
                 ):
                     out.add(names[other])
             return out
+
+        return touches
+
+    def outcome(self, qpos: np.ndarray, q_end: np.ndarray, action: Action, reason: str,
+                disp: np.ndarray, target_joint: int, target_link: str) -> TrialResult:
+        """The TrialResult of a trial that left the objects at ``q_end``: the moved part and
+        the contract's success rule (shared by the flying gripper and the simulated arm)."""
+        motion = q_end - qpos
+        moved = int(np.argmax(np.abs(motion))) if len(motion) else -1
+        if moved >= 0 and abs(motion[moved]) <= 1e-3:
+            moved = -1
+        moved_link = ""
+        if moved >= 0:
+            k = int(np.searchsorted(self._offsets, moved, side="right") - 1)
+            m = self.models[k]
+            child = m.links[m.movable_joints[moved - self._offsets[k]].child].name
+            moved_link = child if len(self.models) == 1 else f"{m.name}/{child}"
+        valid = reason == ""
+        success = False
+        if valid:
+            lim = self.joint_limits[target_joint] if target_joint >= 0 else (0.0, 0.0)
+            success, reason = judge_motion(motion, target_joint, lim[1] - lim[0],
+                                           not action.primitive.startswith("push"),
+                                           disp, pull_direction(action))
+        return TrialResult(
+            valid=valid,
+            success=bool(success),
+            motion=motion,
+            moved_joint=moved,
+            moved_link=moved_link,
+            reason=reason,
+            contact_displacement=disp,
+            target_joint=target_joint,
+            target_link=target_link,
+        )
+
+    def run_trial(self, qpos: np.ndarray, action: Action, seed: int = 0) -> TrialResult:
+        """Execute one primitive from state ``qpos`` in a fresh scene.
+
+        ``seed`` is accepted for API stability; the trial itself has no randomness, so the
+        same (qpos, action) always gives the same, bit-identical result.
+        """
+        from sim_bridge.physics import build_gripper, make_scene
+
+        del seed
+        s = self.settings
+        qpos = np.asarray(qpos, float)
+        point = np.asarray(action.point, float)
+        R = gripper_frame(action)
+        up = R[:, 2]
+        obj_id, link_id, target_joint, target_link = self.target_of(qpos, point)
+
+        scene = make_scene(s.timestep)
+        built = self.build(scene, qpos)
+        target_comp = built[obj_id].links[link_id]
+        link_start = sapien_to_pose(target_comp.entity_pose)
+        local_point = transform_points(np.linalg.inv(link_start), point[None])[0]
+        waypoints, fingers = schedule(action.primitive)
+        gripper = build_gripper(scene, make_pose(R, point - PUSH_START * up), fingers)
+        touches = self.touch_probe(scene, "gripper/")
 
         scene.step()
         reason = ""
@@ -255,32 +308,6 @@ class ObjectWorld:
                     scene.step()
 
         q_end = np.concatenate([bo.qpos() for bo in built])
-        motion = q_end - qpos
         link_end = sapien_to_pose(target_comp.entity_pose)
         disp = transform_points(link_end, local_point[None])[0] - point
-        moved = int(np.argmax(np.abs(motion))) if len(motion) else -1
-        if moved >= 0 and abs(motion[moved]) <= 1e-3:
-            moved = -1
-        moved_link = ""
-        if moved >= 0:
-            k = int(np.searchsorted(self._offsets, moved, side="right") - 1)
-            m = self.models[k]
-            child = m.links[m.movable_joints[moved - self._offsets[k]].child].name
-            moved_link = child if len(self.models) == 1 else f"{m.name}/{child}"
-        valid = reason == ""
-        success = False
-        if valid:
-            lim = self.joint_limits[target_joint] if target_joint >= 0 else (0.0, 0.0)
-            success, reason = judge_motion(motion, target_joint, lim[1] - lim[0], not pushing,
-                                           disp, pull_direction(action))
-        return TrialResult(
-            valid=valid,
-            success=bool(success),
-            motion=motion,
-            moved_joint=moved,
-            moved_link=moved_link,
-            reason=reason,
-            contact_displacement=disp,
-            target_joint=target_joint,
-            target_link=target_link,
-        )
+        return self.outcome(qpos, q_end, action, reason, disp, target_joint, target_link)
