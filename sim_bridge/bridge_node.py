@@ -5,7 +5,8 @@ offer:
 
 * ``camera/points`` (sensor_msgs/PointCloud2, sensor-data QoS): the ray-cast camera cloud
   of the whole scene (objects and the table), with normals and the ground-truth
-  ``object_id`` of every point (0 = table). Frame: ``world`` (parameter ``frame_id``), the
+  ``object_id`` of every point (0 = table) and ``movable`` (1 on a movable part: simulator
+  ground truth, which a real camera does not give). Frame: ``world`` (parameter ``frame_id``), the
   fixed frame of the whole stack, so no TF tree is needed; the camera's own pose changes
   nothing downstream.
 * ``object_joint_states`` (sensor_msgs/JointState, reliable): joint positions of every
@@ -41,7 +42,7 @@ from sim_bridge.objects.model import ObjectModel
 from sim_bridge.world import ObjectWorld
 from w2e_ros.ros.conversions import from_pose, to_pose, to_vector3
 from w2e_ros.ros.params import declare_typed_parameters, describe, param
-from w2e_ros.ros.pointcloud import arrays_to_cloud
+from w2e_ros.ros.pointcloud import MOVABLE_FIELD, arrays_to_cloud
 from w2e_ros.ros.qos import RELIABLE_QOS, SENSOR_QOS
 from w2e_ros.ros.spin import run_node
 from w2e_ros.ros.waypoints import action_from_waypoints
@@ -238,7 +239,9 @@ class SimBridgeNode(Node):
         if 0 < self.settings.max_points < len(idx):
             idx = np.sort(self._rng.choice(len(idx), self.settings.max_points, replace=False))
         return arrays_to_cloud(
-            obs.points[idx], obs.normals[idx], {"object_id": obs.object_ids[idx].astype(np.int32)},
+            obs.points[idx], obs.normals[idx],
+            {"object_id": obs.object_ids[idx].astype(np.int32),
+             MOVABLE_FIELD: obs.movable[idx].astype(np.uint8)},
             frame_id=self.settings.frame_id, stamp=stamp)
 
     def _on_camera_timer(self) -> None:

@@ -138,6 +138,24 @@ def test_maps_cover_every_point_with_probabilities_and_best_actions(graph):
         assert 0.0 <= m.mean_similarity <= 1.0
 
 
+def test_best_and_least_familiar_actions_lie_on_the_movable_part_when_the_cloud_marks_it(graph):
+    p, nrm = box_cloud(256, 5)
+    movable = (p[:, 0] > 0.2).astype(np.uint8)  # the side face and a strip of the front
+    marked = arrays_to_cloud(p, nrm, fields={"movable": movable}, frame_id="world")
+    plain = arrays_to_cloud(p, nrm, frame_id="world")
+    res = graph.call(graph.predict, predict_request([marked, plain], num_best=20))
+    assert res.success, res.message
+    def share(actions) -> float:
+        pts = np.array([[a.point.x, a.point.y, a.point.z] for a in actions])
+        nearest = np.argmin(np.linalg.norm(pts[:, None] - p[None], axis=2), axis=1)
+        return float(np.mean(movable[nearest] > 0))
+
+    assert share(res.maps[0].best_actions) == 1.0
+    assert share(res.maps[0].explore_actions) == 1.0
+    # without the field, the same model's choices are not confined to that half
+    assert share(res.maps[1].best_actions + res.maps[1].explore_actions) < 1.0
+
+
 def test_query_scores_equal_the_map_for_the_same_action(graph):
     """A best action sent back as a query gets the score the map gave it."""
     msg = cloud_msg(seed=4)

@@ -100,6 +100,22 @@ def test_ground_truth_labels_give_scene_ids():
     assert objs[0].centroid[0] == pytest.approx(-0.5, abs=0.05)
 
 
+def test_movable_flags_follow_the_down_sampled_points():
+    rng = np.random.default_rng(5)
+    pts = _scene(rng, [(-0.5, 0.0), (0.5, 0.0)])
+    labels = np.zeros(len(pts), np.int32)
+    labels[20000:23000], labels[23000:] = 1, 2
+    movable = pts[:, 2] > 0.15  # the upper part of each box
+    objs = Segmenter(_config()).segment(pts, labels=labels, movable=movable)
+    for o in objs:
+        assert o.movable is not None and o.movable.shape == (512,)
+        np.testing.assert_array_equal(o.movable, o.points[:, 2] > 0.15)
+        assert 0 < o.movable.sum() < 512
+    assert Segmenter(_config()).segment(pts, labels=labels)[0].movable is None
+    with pytest.raises(ValueError, match="movable"):
+        Segmenter(_config()).segment(pts, movable=movable[:10])
+
+
 @pytest.mark.slow
 def test_simulator_cloud_of_two_cabinets_on_a_table():
     from scenes import two_cabinets_on_a_table
@@ -134,6 +150,11 @@ def test_segmentation_node_logs_and_skips_malformed_clouds():
         assert [o.id for o in out.objects] == [3, 4]
         cloud = cloud_to_arrays(out.objects[0].cloud, require_normals=True)
         assert cloud.points.shape == (2048, 3)
+        assert "movable" not in cloud.fields  # the camera sent none: none is made up
+        marked = node.process(arrays_to_cloud(pts, fields={
+            "object_id": labels, "movable": (pts[:, 2] > 0.15).astype(np.uint8)}))
+        cloud = cloud_to_arrays(marked.objects[0].cloud, fields=("movable",))
+        np.testing.assert_array_equal(cloud.fields["movable"] > 0, cloud.points[:, 2] > 0.15)
         bad = arrays_to_cloud(pts)
         bad.fields = bad.fields[:2]
         with pytest.raises(CloudFormatError, match="no z"):

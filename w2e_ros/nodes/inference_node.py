@@ -53,6 +53,7 @@ from w2e_ros.ros.pointcloud import (
     arrays_to_cloud,
     cloud_to_arrays,
     heatmap_rgb,
+    movable_mask,
 )
 from w2e_ros.ros.qos import LATCHED_QOS
 from w2e_ros.ros.spin import run_node
@@ -118,6 +119,7 @@ class _Served:
 class _Cloud:
     points: np.ndarray  # (N, 3) float32
     normals: np.ndarray  # (N, 3) float32
+    movable: np.ndarray | None = None  # (N,) bool: the simulator's movable parts, if sent
 
 
 def _features(model: W2EModel, cloud: _Cloud, seed: int) -> torch.Tensor:
@@ -237,7 +239,8 @@ class InferenceNode(Node):
                 raise ValueError(f"cloud {i}: {exc}") from exc
             nrm = arr.normals / np.maximum(np.linalg.norm(arr.normals, axis=1, keepdims=True),
                                            1e-9)
-            clouds.append(_Cloud(arr.points.astype(np.float32), nrm.astype(np.float32)))
+            clouds.append(_Cloud(arr.points.astype(np.float32), nrm.astype(np.float32),
+                                 movable_mask(msg)))
         return clouds
 
     @torch.no_grad()
@@ -306,8 +309,13 @@ class InferenceNode(Node):
             return [action_to_interaction(cand.action(cloud, int(i), primitive), object_id)
                     for i in order]
 
-        best = np.argsort(-aff, kind="stable")[:nbest]
-        least = np.argsort(sim, kind="stable")[:nbest]
+        # with the simulator's movable mask, the best and least familiar actions are taken on
+        # movable parts (the reference's argmax of affordance x movable mask); the maps
+        # themselves cover every point
+        on_part = (np.ones(len(aff), bool) if cloud.movable is None
+                   else cloud.movable[pidx])
+        best = np.argsort(np.where(on_part, -aff, np.inf), kind="stable")[:nbest]
+        least = np.argsort(np.where(on_part, sim, np.inf), kind="stable")[:nbest]
         out = AffordanceMap(header=msg.header, object_id=object_id, primitive=primitive)
         out.cloud = arrays_to_cloud(
             cloud.points, cloud.normals,

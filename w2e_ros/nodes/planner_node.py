@@ -70,7 +70,7 @@ from w2e_ros.ros.conversions import (
     trial_result_to_outcome,
 )
 from w2e_ros.ros.params import declare_typed_parameters, describe, param
-from w2e_ros.ros.pointcloud import arrays_to_cloud, cloud_to_arrays
+from w2e_ros.ros.pointcloud import arrays_to_cloud, cloud_to_arrays, movable_mask
 from w2e_ros.ros.qos import LATCHED_QOS, RELIABLE_QOS
 from w2e_ros.ros.spin import run_node
 
@@ -170,6 +170,7 @@ class ObservedCloud:
     normals: np.ndarray  # (N, 3)
     msg: PointCloud2
     object_id: int
+    movable: np.ndarray | None = None  # (N,) simulator ground truth: candidates favour it
 
 
 class RosWorld:
@@ -198,7 +199,8 @@ class RosWorld:
             self.node.get_logger().warning(f"{exc}; keeping object {target}'s last cloud")
             return self.last_cloud[int(target)]
         arr = cloud_to_arrays(msg.cloud, require_normals=True)
-        cloud = ObservedCloud(arr.points, arr.normals, msg.cloud, int(target))
+        cloud = ObservedCloud(arr.points, arr.normals, msg.cloud, int(target),
+                              movable_mask(msg.cloud))
         self.last_cloud[int(target)] = cloud
         return cloud
 

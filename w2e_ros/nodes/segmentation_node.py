@@ -17,6 +17,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 
+import numpy as np
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
@@ -25,7 +26,12 @@ from w2e_msgs.msg import SegmentedObject, SegmentedObjects
 
 from w2e_ros.ros.conversions import to_point, to_vector3
 from w2e_ros.ros.params import declare_typed_parameters, describe, param
-from w2e_ros.ros.pointcloud import CloudFormatError, arrays_to_cloud, cloud_to_arrays
+from w2e_ros.ros.pointcloud import (
+    MOVABLE_FIELD,
+    CloudFormatError,
+    arrays_to_cloud,
+    cloud_to_arrays,
+)
 from w2e_ros.ros.qos import LATCHED_QOS, SENSOR_QOS
 from w2e_ros.ros.segmentation import Segmenter, SegmenterConfig
 from w2e_ros.ros.spin import run_node
@@ -57,6 +63,10 @@ class SegmentationSettings:
         "frame other than frame_id)")
     tf_timeout_s: float = param(0.2, "how long one TF lookup may wait (s)", min=0.0)
     use_labels: bool = param(True, "use the cloud's object_id field when it has one")
+    forward_movable: bool = param(
+        True, "carry the cloud's movable field (the simulator's ground-truth movable parts) "
+        "into the object clouds, so exploration and manipulate act on movable parts as the "
+        "reference does in simulation; a real camera's cloud has no such field")
     workspace_min: list[float] = param([-3.0, -3.0, -0.5], "workspace box, lower corner (m)")
     workspace_max: list[float] = param([3.0, 3.0, 3.0], "workspace box, upper corner (m)")
     plane_distance: float = param(0.01, "RANSAC inlier distance of the table plane (m)",
@@ -120,7 +130,9 @@ class SegmentationNode(Node):
         """Segment one cloud message; raises CloudFormatError / ValueError for a bad one
         (FrameError, a CloudFormatError, when there is no transform into frame_id)."""
         names = {f.name for f in msg.fields}
-        wanted = (LABEL_FIELD,) if self.settings.use_labels and LABEL_FIELD in names else ()
+        wanted = tuple(f for f, on in ((LABEL_FIELD, self.settings.use_labels),
+                                       (MOVABLE_FIELD, self.settings.forward_movable))
+                       if on and f in names)
         arr = cloud_to_arrays(msg, fields=wanted, drop_nonfinite=True)
         to_robot = self.frames.transform_for(msg.header.frame_id, msg.header.stamp)
         header = msg.header
@@ -129,12 +141,16 @@ class SegmentationNode(Node):
             arr.normals = to_robot.rotate(arr.normals) if arr.normals is not None else None
             header = Header(stamp=msg.header.stamp, frame_id=self.settings.frame_id)
         labels = arr.fields.get(LABEL_FIELD)
-        segments = self.segmenter.segment(arr.points, arr.normals, labels)
+        segments = self.segmenter.segment(arr.points, arr.normals, labels,
+                                          arr.fields.get(MOVABLE_FIELD))
         out = SegmentedObjects(header=header)
         for seg in segments:
             out.objects.append(SegmentedObject(
                 id=int(seg.id),
-                cloud=arrays_to_cloud(seg.points, seg.normals, header=header),
+                cloud=arrays_to_cloud(
+                    seg.points, seg.normals, header=header,
+                    fields=None if seg.movable is None else {
+                        MOVABLE_FIELD: seg.movable.astype(np.uint8)}),
                 centroid=to_point(seg.centroid),
                 extent=to_vector3(seg.extent),
                 num_raw_points=int(seg.num_raw_points)))

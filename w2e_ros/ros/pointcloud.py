@@ -214,6 +214,20 @@ def cloud_to_structured(msg: PointCloud2) -> np.ndarray:
     return grid.reshape(-1)
 
 
+MOVABLE_FIELD = "movable"
+"""Per-point 0/1 field of the simulator's clouds: the point lies on a movable part (ground
+truth, as the reference proposes exploration and manipulation on movable parts in
+simulation). A real camera's cloud has no such field; every node works without it."""
+
+
+def movable_mask(msg: PointCloud2) -> np.ndarray | None:
+    """(N,) bool from the cloud's ``movable`` field, None when it has none or none is set."""
+    if not any(f.name == MOVABLE_FIELD for f in msg.fields):
+        return None
+    mask = cloud_to_arrays(msg, fields=(MOVABLE_FIELD,)).fields[MOVABLE_FIELD] > 0
+    return mask if mask.any() else None
+
+
 def cloud_to_arrays(
     msg: PointCloud2,
     require_normals: bool = False,

@@ -50,6 +50,7 @@ class Segment:
     centroid: np.ndarray  # (3,) mean of the raw points
     extent: np.ndarray  # (3,) axis-aligned size of the raw points
     num_raw_points: int
+    movable: np.ndarray | None = None  # (num_points,) bool, from the cloud's movable field
 
 
 class Segmenter:
@@ -66,8 +67,10 @@ class Segmenter:
         self._next_id = 1
 
     def segment(self, points: np.ndarray, normals: np.ndarray | None = None,
-                labels: np.ndarray | None = None) -> list[Segment]:
-        """Segment one frame; raises ValueError for arrays of the wrong shape."""
+                labels: np.ndarray | None = None,
+                movable: np.ndarray | None = None) -> list[Segment]:
+        """Segment one frame; raises ValueError for arrays of the wrong shape. ``movable``
+        (per point, the simulator's ground truth) is carried into each segment's samples."""
         c = self.config
         points = np.asarray(points, dtype=np.float32)
         if points.ndim != 2 or points.shape[1] != 3:
@@ -80,6 +83,10 @@ class Segmenter:
             labels = np.asarray(labels).reshape(-1)
             if len(labels) != len(points):
                 raise ValueError(f"{len(labels)} labels for {len(points)} points")
+        if movable is not None:
+            movable = np.asarray(movable).reshape(-1).astype(bool)
+            if len(movable) != len(points):
+                raise ValueError(f"{len(movable)} movable flags for {len(points)} points")
 
         keep = np.isfinite(points).all(axis=1)
         if normals is not None:
@@ -89,6 +96,7 @@ class Segmenter:
         points = points[keep]
         normals = normals[keep] if normals is not None else None
         labels = labels[keep] if labels is not None else None
+        movable = movable[keep] if movable is not None else None
         if len(points) == 0:
             return []
 
@@ -100,8 +108,9 @@ class Segmenter:
         for label, idx in groups:
             if len(idx) < c.min_object_points:
                 continue
-            segments.append(self._make_segment(label, points[idx],
-                                               normals[idx] if normals is not None else None))
+            segments.append(self._make_segment(
+                label, points[idx], normals[idx] if normals is not None else None,
+                movable[idx] if movable is not None else None))
         if labels is None or not c.use_labels:
             self._assign_ids(segments)
         return sorted(segments, key=lambda s: s.id)
@@ -141,7 +150,8 @@ class Segmenter:
         lab = vlab[nearest]
         return [rest[lab == k] for k in range(int(lab.max()) + 1)] if len(lab) else []
 
-    def _make_segment(self, label: int, pts: np.ndarray, nrm: np.ndarray | None) -> Segment:
+    def _make_segment(self, label: int, pts: np.ndarray, nrm: np.ndarray | None,
+                      movable: np.ndarray | None = None) -> Segment:
         c = self.config
         centroid = pts.mean(axis=0).astype(np.float64)
         extent = (pts.max(axis=0) - pts.min(axis=0)).astype(np.float64)
@@ -150,7 +160,8 @@ class Segmenter:
         sn = self._estimate_normals(pts)[idx] if nrm is None else nrm[idx]
         sn = sn / np.maximum(np.linalg.norm(sn, axis=1, keepdims=True), 1e-12)
         return Segment(id=label, points=sp.astype(np.float32), normals=sn.astype(np.float32),
-                       centroid=centroid, extent=extent, num_raw_points=len(pts))
+                       centroid=centroid, extent=extent, num_raw_points=len(pts),
+                       movable=movable[idx] if movable is not None else None)
 
     def _estimate_normals(self, pts: np.ndarray) -> np.ndarray:
         """Normals for a cloud without them, oriented away from the cluster's centre."""
