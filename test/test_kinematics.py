@@ -114,6 +114,13 @@ def test_a_primitive_on_an_object_in_front_of_the_base_plans_a_continuous_trajec
     for k in acts:
         i = int(np.flatnonzero(plan.waypoint == k)[0])
         assert plan.times[i] - plan.times[i - 1] >= kin.DEFAULT_PLAN.dwell
+    # the straight moves at contact speed at most; the free move to the start pose is timed
+    # by the joints alone (its slowest joint at the scaled limit, with the spline factor)
+    step = np.linalg.norm(np.diff(plan.wrist[1:, :3, 3], axis=0), axis=1)
+    assert np.all(step / np.diff(plan.times[1:]) <= kin.DEFAULT_PLAN.cartesian_speed + 1e-9)
+    free = kin.DEFAULT_PLAN.spline_factor * np.max(np.abs(plan.positions[1] - plan.positions[0])
+                                                   / (lim.dq_max * lim.velocity_scale))
+    assert plan.times[1] == pytest.approx(max(free, 0.05))
 
 
 def test_the_wrist_is_the_contract_wrist_fingers_ahead_along_up():
