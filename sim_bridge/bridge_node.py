@@ -18,11 +18,26 @@ offer:
   primitive they encode (anything else is refused with a clear message), the trial runs in
   a fresh physics scene from the current joint state, and the object keeps the state the
   trial left it in.
+
+With ``robot: panda`` the robot is a simulated Franka Panda on a fixed base
+(:mod:`sim_bridge.panda`) in one persistent scene with the objects, stepped in real time, and
+the bridge offers what a Panda's ros2_control setup offers instead of ``follow_waypoints``:
+
+* ``panda_arm_controller/joint_trajectory`` (trajectory_msgs/JointTrajectory, sub): the 7 arm
+  joints' trajectory, started on arrival from where the arm is (a JointTrajectoryController).
+* ``panda_hand_controller/joint_trajectory`` (trajectory_msgs/JointTrajectory, sub): the
+  finger joints' target opening (the hand).
+* ``joint_states`` (sensor_msgs/JointState): the arm's and the fingers' positions and
+  velocities.
+
+The arm adapter (``w2e_ros.nodes.arm_adapter_node``, ``dry_run: false``) serves
+``follow_waypoints`` against these, as it would against a real arm.
 """
 
 from __future__ import annotations
 
 import threading
+import time
 import zlib
 from dataclasses import dataclass
 
@@ -30,7 +45,9 @@ import numpy as np
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
+from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import JointState, PointCloud2
+from trajectory_msgs.msg import JointTrajectory
 from w2e_msgs.action import FollowWaypoints
 from w2e_msgs.msg import SceneObject
 from w2e_msgs.srv import LoadScene
@@ -40,6 +57,7 @@ from sim_bridge.geometry import box_mesh, make_pose, transform_points
 from sim_bridge.objects import make_object
 from sim_bridge.objects.model import ObjectModel
 from sim_bridge.world import ObjectWorld
+from w2e_ros.core import kinematics as kin
 from w2e_ros.ros.conversions import from_pose, to_pose, to_vector3
 from w2e_ros.ros.params import declare_typed_parameters, describe, param
 from w2e_ros.ros.pointcloud import MOVABLE_FIELD, arrays_to_cloud
@@ -48,6 +66,9 @@ from w2e_ros.ros.spin import run_node
 from w2e_ros.ros.waypoints import action_from_waypoints
 
 TABLE_ID = 0  # object_id of table points in the camera cloud
+ROBOTS = ("flying", "panda")
+ARM_TOPIC = "panda_arm_controller/joint_trajectory"  # the arm adapter's CONTROLLER_TOPIC
+HAND_TOPIC = "panda_hand_controller/joint_trajectory"
 
 
 @dataclass
@@ -69,6 +90,16 @@ class BridgeSettings:
     initial_scene: list[str] = param(
         [], "objects loaded at start-up, 'category:instance[:seed]' each")
     seed: int = param(0, "seed of the cloud subsampling")
+    robot: str = param(
+        "flying", "the simulated robot: flying (a free Panda hand running whole primitives on "
+        "follow_waypoints: the paper's benchmark) or panda (a Franka Panda on a fixed base, "
+        "driven by joint trajectories on panda_arm_controller/joint_trajectory and "
+        "panda_hand_controller/joint_trajectory, joint_states published; run the arm adapter "
+        "live for follow_waypoints)")
+    arm_base_pose: list[float] = param(
+        [], "robot panda: pose of panda_link0 in frame_id, x y z qx qy qz qw ([]: 0.95 m in "
+        "front (+x) of the first object's centre, 0.3 m below it, facing it)")
+    joint_state_rate_hz: float = param(50.0, "robot panda: joint_states rate (Hz)", min=1.0)
 
 
 @dataclass
@@ -97,6 +128,10 @@ class SimBridgeNode(Node):
         self._camera = None
         self._rng = np.random.default_rng(self.settings.seed)
         self._dirty = True
+        if self.settings.robot not in ROBOTS:
+            raise ValueError(f"robot must be one of {ROBOTS}, got {self.settings.robot!r}")
+        self._live = None  # robot panda: sim_bridge.panda.LiveArm of the current scene
+        self._stop = threading.Event()
 
         sensor_group = MutuallyExclusiveCallbackGroup()
         command_group = MutuallyExclusiveCallbackGroup()
@@ -104,11 +139,21 @@ class SimBridgeNode(Node):
         self._joints_pub = self.create_publisher(JointState, "object_joint_states", RELIABLE_QOS)
         self.create_service(LoadScene, "load_scene", self._on_load_scene,
                             callback_group=command_group)
-        self._action = ActionServer(
-            self, FollowWaypoints, "follow_waypoints", execute_callback=self._on_follow,
-            goal_callback=lambda _goal: GoalResponse.ACCEPT,
-            cancel_callback=lambda _goal: CancelResponse.REJECT,  # a trial is atomic
-            callback_group=command_group)
+        if self.settings.robot == "flying":
+            self._action = ActionServer(
+                self, FollowWaypoints, "follow_waypoints", execute_callback=self._on_follow,
+                goal_callback=lambda _goal: GoalResponse.ACCEPT,
+                cancel_callback=lambda _goal: CancelResponse.REJECT,  # a trial is atomic
+                callback_group=command_group)
+        else:
+            arm_group = MutuallyExclusiveCallbackGroup()
+            self._arm_state_pub = self.create_publisher(JointState, "joint_states", RELIABLE_QOS)
+            self.create_subscription(JointTrajectory, ARM_TOPIC, self._on_arm_trajectory,
+                                     RELIABLE_QOS, callback_group=arm_group)
+            self.create_subscription(JointTrajectory, HAND_TOPIC, self._on_hand_trajectory,
+                                     RELIABLE_QOS, callback_group=arm_group)
+            self._physics = threading.Thread(target=self._run_physics, daemon=True)
+            self._physics.start()
         period = 1.0 / self.settings.publish_rate_hz if self.settings.publish_rate_hz > 0 else 0.5
         self.create_timer(period, self._on_camera_timer, callback_group=sensor_group)
 
@@ -175,6 +220,8 @@ class SimBridgeNode(Node):
                                        [o.pose for o in self._objects])
                            if self._objects else None)
             self._dirty = True
+            if self.settings.robot == "panda":
+                self._rebuild_arm()
         loaded = [SceneObject(category=o.model.category, instance=o.model.instance,
                               start_state=[float(v) for v in o.qpos], seed=o.seed,
                               pose=to_pose(o.pose[:3, 3], o.pose[:3, :3])) for o in built]
@@ -266,6 +313,135 @@ class SimBridgeNode(Node):
         msg.header.stamp = self.get_clock().now().to_msg()
         msg.header.frame_id = self.settings.frame_id
         self._joints_pub.publish(msg)
+
+    # -- the simulated Panda (robot: panda) ------------------------------------------------
+    def arm_base(self) -> np.ndarray:
+        """(4, 4) pose of panda_link0: the parameter, or in front of the first object."""
+        if self.settings.arm_base_pose:
+            return kin.pose_matrix(self.settings.arm_base_pose)
+        from sim_bridge.panda import base_in_front
+
+        o = self._objects[0]
+        centre = transform_points(o.pose, o.model.bounds()).mean(axis=0)
+        return kin.pose_matrix(base_in_front(centre))
+
+    def _rebuild_arm(self) -> None:
+        """A new physics scene of the objects and the arm (the arm keeps its joints); called
+        with the lock held whenever the objects change."""
+        from sim_bridge.panda import LiveArm
+
+        if self._world is None:
+            self._live = None
+            return
+        old = self._live
+        q = old.panda.q() if old is not None else None
+        finger = float(old.panda.finger_positions().mean()) if old is not None else 0.04
+        base = self.arm_base()
+        self._live = LiveArm(self._world, np.concatenate([o.qpos for o in self._objects]),
+                             base, q, finger, self._world.settings.timestep)
+        if old is None or not np.allclose(old.base_pose, base):
+            pose = [*base[:3, 3], *Rotation.from_matrix(base[:3, :3]).as_quat()]
+            self.get_logger().info(
+                "Panda base (panda_link0) at x y z qx qy qz qw = "
+                f"{[round(float(v), 4) for v in pose]}: the planner's arm_base_pose and the "
+                "arm adapter's base_pose must say the same")
+
+    def _trajectory(self, msg: JointTrajectory, names: tuple[str, ...]
+                    ) -> tuple[np.ndarray, np.ndarray]:
+        """(times, positions in ``names`` order) of a JointTrajectory naming all of them."""
+        missing = [n for n in names if n not in msg.joint_names]
+        if missing or not msg.points:
+            raise ValueError(f"a trajectory for {', '.join(names)} with points; got joints "
+                             f"{list(msg.joint_names)} and {len(msg.points)} points")
+        idx = [list(msg.joint_names).index(n) for n in names]
+        times = np.array([p.time_from_start.sec + 1e-9 * p.time_from_start.nanosec
+                          for p in msg.points])
+        pos = np.array([[p.positions[i] for i in idx] for p in msg.points], float)
+        return times, pos
+
+    def _on_arm_trajectory(self, msg: JointTrajectory) -> None:
+        try:
+            times, pos = self._trajectory(msg, kin.PANDA_JOINTS)
+            with self._lock:
+                if self._live is None:
+                    raise ValueError("the scene is empty: call load_scene first")
+                duration = self._live.command_arm(times, pos)
+        except ValueError as err:
+            self.get_logger().error(f"{ARM_TOPIC}: trajectory refused: {err}")
+            return
+        self.get_logger().info(f"arm trajectory: {len(times)} points, {duration:.2f} s")
+
+    def _on_hand_trajectory(self, msg: JointTrajectory) -> None:
+        from sim_bridge.panda import FINGER_JOINTS
+
+        try:
+            name = next(n for n in FINGER_JOINTS if n in msg.joint_names)
+            times, pos = self._trajectory(msg, (name,))
+            with self._lock:
+                if self._live is None:
+                    raise ValueError("the scene is empty: call load_scene first")
+                self._live.command_fingers(times, pos[:, 0])
+        except (ValueError, StopIteration) as err:
+            self.get_logger().error(f"{HAND_TOPIC}: refused (joints {FINGER_JOINTS}): {err}")
+            return
+        self.get_logger().info(f"hand: fingers to {pos[-1, 0]:.3f} m in {times[-1]:.2f} s")
+
+    def _run_physics(self) -> None:
+        """Step the scene in real time while anything moves (idle otherwise) and publish
+        joint_states; the objects' joints are copied out for the camera and object_joint_states."""
+        period = 1.0 / self.settings.joint_state_rate_hz
+        last, settle_until, next_pub = time.monotonic(), 0.0, 0.0
+        while not self._stop.is_set():
+            now = time.monotonic()
+            state = None
+            with self._lock:
+                live = self._live
+                if live is not None:
+                    dt = live.timestep
+                    if live.busy():
+                        settle_until = now + 0.5  # let the part and the hand come to rest
+                    if now < settle_until:
+                        n = min(int((now - last) / dt), int(0.1 / dt))  # catch up <= 0.1 s
+                        if n > 0:
+                            live.step(n)
+                            last += n * dt
+                            self._copy_objects(live)
+                    else:
+                        last = now
+                    state = (live.panda.q(), live.panda.finger_positions(),
+                             live.panda.velocities())
+                else:
+                    last = now
+            if state is not None and now >= next_pub:
+                next_pub = now + period
+                self._publish_arm(*state)
+            self._stop.wait(min(period, 0.01))
+
+    def _copy_objects(self, live) -> None:
+        q = live.object_qpos()
+        offsets = np.cumsum([0] + [len(o.qpos) for o in self._objects])
+        for k, o in enumerate(self._objects):
+            new = q[offsets[k]:offsets[k + 1]]
+            if np.abs(new - o.qpos).max(initial=0.0) > 1e-5:
+                o.qpos = new.copy()
+                self._dirty = True
+
+    def _publish_arm(self, q: np.ndarray, fingers: np.ndarray, dq: np.ndarray) -> None:
+        from sim_bridge.panda import FINGER_JOINTS
+
+        msg = JointState(name=[*kin.PANDA_JOINTS, *FINGER_JOINTS],
+                         position=[float(v) for v in (*q, *fingers)],
+                         velocity=[float(v) for v in dq])
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self._arm_state_pub.publish(msg)
+
+    def destroy_node(self) -> None:
+        """Stop the physics thread before the node goes."""
+        self._stop.set()
+        thread = getattr(self, "_physics", None)
+        if thread is not None:
+            thread.join(timeout=2.0)
+        super().destroy_node()
 
     # -- services and actions ----------------------------------------------------------------
     def _on_load_scene(self, req: LoadScene.Request, resp: LoadScene.Response):

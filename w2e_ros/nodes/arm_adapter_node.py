@@ -14,11 +14,13 @@ executed (``valid`` false, so no outcome is learned from it). Otherwise the traj
 pieces between the gripper's actions, to a joint trajectory controller's topic
 ``panda_arm_controller/joint_trajectory`` (ros2_control's JointTrajectoryController; remap the
 name for another controller), the gripper is driven through a control_msgs/GripperCommand
-action (``gripper_action``, franka_gripper's ``franka_gripper/gripper_action``) between the
-pieces, and each piece must end within ``goal_tolerance`` of its last point on
-``joint_states`` (the robot's joint_state_broadcaster). The outcome of a real interaction is
-judged from clouds (the executor's ``outcome_source: clouds``): this adapter reports no object
-joints.
+action (``gripper_action``, franka_gripper's ``franka_gripper/gripper_action``) or, with
+``gripper_topic`` set, a JointTrajectory of the two finger joints (a finger joint controller;
+the simulated Panda of the bridge, ``robot: panda``, listens on
+``panda_hand_controller/joint_trajectory``) between the pieces, and each piece must end
+within ``goal_tolerance`` of its last point on ``joint_states`` (the robot's
+joint_state_broadcaster). The outcome of a real interaction is judged from clouds (the
+executor's ``outcome_source: clouds``): this adapter reports no object joints.
 """
 
 from __future__ import annotations
@@ -48,6 +50,7 @@ from w2e_ros.ros.spin import run_node
 from w2e_ros.ros.waypoints import GRIPPER_CLOSE, GRIPPER_KEEP, GRIPPER_OPEN
 
 CONTROLLER_TOPIC = "panda_arm_controller/joint_trajectory"  # relative: remap for another
+FINGER_MOTION_S = 0.5  # s a gripper_topic command takes (the Panda hand: 4 cm at ~0.1 m/s)
 
 
 @dataclass
@@ -71,6 +74,10 @@ class ArmAdapterSettings:
                                    min=0.001)
     gripper_action: str = param("franka_gripper/gripper_action", "control_msgs/GripperCommand "
                                 "action of the hand ('': none, gripper commands are skipped)")
+    gripper_topic: str = param(
+        "", "trajectory_msgs/JointTrajectory topic of a finger joint controller "
+        "(<prefix>_finger_joint1/2), used instead of gripper_action when set; the bridge's "
+        "simulated Panda: panda_hand_controller/joint_trajectory")
     gripper_open_position: float = param(
         0.04, "GripperCommand position of an open command (0 closes); the Panda hand opens "
         "0.04 m per finger: check whether your gripper server reads width or finger travel",
@@ -100,7 +107,9 @@ class ArmAdapterNode(Node):
         self.limits = kin.ArmLimits(velocity_scale=s.velocity_scale)
         self.plan_settings = kin.PlanSettings(cartesian_speed=s.cartesian_speed)
         self.joint_names = tuple(f"{s.joint_prefix}_joint{i}" for i in range(1, 8))
+        self.finger_names = tuple(f"{s.joint_prefix}_finger_joint{i}" for i in (1, 2))
         self._state: np.ndarray | None = None  # latest joint positions (joint_names order)
+        self._fingers: np.ndarray | None = None  # latest finger positions (gripper_topic)
         self._state_cv = threading.Condition()
         self._last_end: np.ndarray | None = None  # dry run: where the last plan left the arm
         self._busy = threading.Lock()  # one arm: one trajectory at a time
@@ -113,7 +122,11 @@ class ArmAdapterNode(Node):
                                                  LATCHED_QOS)
         self.path_pub = self.create_publisher(Path, "planned_path", LATCHED_QOS)
         self._gripper = None
-        if not s.dry_run and s.gripper_action:
+        self._gripper_pub = None
+        if not s.dry_run and s.gripper_topic:
+            self._gripper_pub = self.create_publisher(JointTrajectory, s.gripper_topic,
+                                                      RELIABLE_QOS)
+        elif not s.dry_run and s.gripper_action:
             try:
                 from control_msgs.action import GripperCommand
             except ImportError as err:
@@ -138,6 +151,8 @@ class ArmAdapterNode(Node):
         if all(n in pos for n in self.joint_names):
             with self._state_cv:
                 self._state = np.array([pos[n] for n in self.joint_names])
+                if all(n in pos for n in self.finger_names):
+                    self._fingers = np.array([pos[n] for n in self.finger_names])
                 self._state_cv.notify_all()
 
     def _joints(self, timeout: float) -> np.ndarray | None:
@@ -244,6 +259,8 @@ class ArmAdapterNode(Node):
         """Drive the hand (open / close); the reason on failure, '' when done or no hand."""
         if command not in (GRIPPER_OPEN, GRIPPER_CLOSE):
             return ""
+        if self._gripper_pub is not None:
+            return self._grip_topic(command)
         if self._gripper is None:
             self.get_logger().warning(f"gripper command {command} skipped: no gripper_action")
             return ""
@@ -264,6 +281,35 @@ class ArmAdapterNode(Node):
         if not done.wait(s.gripper_timeout_s):
             return "the gripper did not finish in time"
         return ""  # a grasp that closes on nothing is not an error: the outcome says so
+
+    def _grip_topic(self, command: int) -> str:
+        """The fingers to their target over ``FINGER_MOTION_S`` on gripper_topic; done when
+        joint_states show them there or stopped (closed on the part), after the motion's
+        time at least."""
+        s = self.settings
+        target = s.gripper_open_position if command == GRIPPER_OPEN else 0.0
+        msg = JointTrajectory(joint_names=list(self.finger_names))
+        msg.points.append(JointTrajectoryPoint(
+            positions=[target, target],
+            time_from_start=DurationMsg(nanosec=int(FINGER_MOTION_S * 1e9))))
+        self._gripper_pub.publish(msg)
+        start = time.monotonic()
+        time.sleep(FINGER_MOTION_S)
+        last, last_t = None, time.monotonic()
+        while time.monotonic() - start < s.gripper_timeout_s:
+            with self._state_cv:
+                f = None if self._fingers is None else self._fingers.copy()
+            if f is not None:
+                if np.abs(f - target).max() < 1e-3:
+                    return ""
+                if last is not None and np.abs(f - last).max() < 2e-4 and \
+                        time.monotonic() - last_t >= 0.2:
+                    return ""  # stopped on the part: a grasp
+                if last is None or np.abs(f - last).max() >= 2e-4:
+                    last, last_t = f, time.monotonic()
+            time.sleep(0.02)
+        return (f"the fingers did not settle within {s.gripper_timeout_s:.1f} s on joint_states "
+                f"({', '.join(self.finger_names)}): is {s.gripper_topic} a running controller?")
 
     # -- messages --------------------------------------------------------------------------
     def _trajectory_msg(self, plan: kin.JointPlan, first: int, last: int) -> JointTrajectory:
