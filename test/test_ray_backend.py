@@ -106,3 +106,60 @@ def test_ray_collection_writes_the_same_shards_as_the_local_one(ray_session, tmp
     # the Ray run resumes like the local one: nothing left to do
     again = collect(CollectConfig(out=str(tmp_path / "ray"), **cfg), RayBackend())
     assert again.new_trials == 0 and again.trials == remote.trials
+
+
+def _benchmark_args(runs: Path, out: Path) -> list[str]:
+    return ["benchmark", "--runs", str(runs), "--combos", "cfw", "--primitives", "push",
+            "--methods", "none", "random", "similarity", "--seeds", "0", "1",
+            "--categories", "door", "--budgets", "1", "--explore-objects", "2",
+            "--test-objects", "2", "--points", "16", "--dirs", "2", "--finetune-steps", "20",
+            "--bar", "1.01", "--validate", "--bootstrap", "50", "--threads", "1",
+            "--out", str(out)]
+
+
+def _without_times(doc: object) -> str:
+    import json
+
+    def strip(x: object) -> object:
+        if isinstance(x, dict):
+            return {k: strip(v) for k, v in x.items() if k != "seconds"}
+        if isinstance(x, list):
+            return [strip(v) for v in x]
+        return x
+
+    return json.dumps(strip(doc), sort_keys=True)
+
+
+@pytest.mark.slow
+def test_ray_benchmark_gives_the_same_benchmark_json_as_the_local_run(ray_session,
+                                                                       tmp_path) -> None:
+    """Each (combination, seed, method) run a Ray task in another process, its own world
+    and evaluator there: the same numbers as the runs one after the other here."""
+    import json
+
+    from w2e_ros import cli
+
+    runs = tmp_path / "runs" / "w2e_cfw_push"
+    runs.mkdir(parents=True)
+    root = Path(__file__).resolve().parents[1]
+    (runs / "model.pt").symlink_to(root / "checkpoints" / "w2e_cfw_push.pt")
+    local, remote = tmp_path / "local", tmp_path / "ray"
+    assert cli.main([*_benchmark_args(tmp_path / "runs", local), "--no-heatmaps"]) == 0
+    assert cli.main([*_benchmark_args(tmp_path / "runs", remote), "--backend", "ray"]) == 0
+    a = json.loads((local / "benchmark.json").read_text())
+    b = json.loads((remote / "benchmark.json").read_text())
+    assert a["rows"] and a["rows"] == b["rows"]
+    # the predictions themselves, not only the statistics
+    with np.load(local / "predictions_cfw_push.npz") as za, \
+            np.load(remote / "predictions_cfw_push.npz") as zb:
+        assert sorted(za.files) == sorted(zb.files)
+        assert any(k.startswith("pred:similarity|1|1|") for k in za.files)
+        for k in za.files:
+            np.testing.assert_array_equal(za[k], zb[k], err_msg=k)
+    ea = json.loads((local / "explored_cfw_push.json").read_text())
+    eb = json.loads((remote / "explored_cfw_push.json").read_text())
+    # as text (NaN, an undefined AUROC, is not equal to itself), wall times left out
+    assert _without_times(ea) == _without_times(eb)
+    assert len(ea["similarity_s1_all"]["steps"]) == 2
+    # the explored models came back from their task for the heatmaps
+    assert (remote / "heatmap_push_cfw_door.png").exists()

@@ -426,7 +426,9 @@ def _add_benchmark(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--summarize-only", action="store_true",
                    help="recompute benchmark.json / tables / curves from the predictions "
                         "files already in --out (e.g. after runs in parallel processes)")
-    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--threads", type=int, default=2,
+                   help="torch CPU threads (local backend; a Ray task uses one)")
+    _add_backend_args(p)
     p.set_defaults(func=_run_benchmark)
 
 
@@ -449,7 +451,8 @@ def _run_benchmark(a: argparse.Namespace) -> int:
     if a.summarize_only:
         summarize(a.out, cfg)
     else:
-        run_benchmark(cfg)
+        with _backend(a, 1) as backend:  # local: the runs one after the other
+            run_benchmark(cfg, backend=backend)
     print((Path(a.out) / "tables.md").read_text())
     return 0
 

@@ -21,6 +21,7 @@ metric -> mean, ci_low, ci_high, n_seeds, plus the paired differences), ``predic
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import time
@@ -32,6 +33,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from w2e_ros.core.backends import Backend, LocalBackend, resolve
 from w2e_ros.core.categories import load_categories
 from w2e_ros.core.config import ExploreConfig
 from w2e_ros.core.data import InteractionData
@@ -123,91 +125,153 @@ class _Evaluator:
         return out
 
 
-def run_benchmark(cfg: BenchmarkConfig, world: Any | None = None) -> dict:
-    """Run everything the config asks for; returns the summary (also written to disk)."""
+def run_benchmark(cfg: BenchmarkConfig, world: Any | None = None,
+                  backend: Backend | None = None) -> dict:
+    """Run everything the config asks for; returns the summary (also written to disk).
+
+    Every (primitive, combination, seed, method) run is one job of ``backend`` (default:
+    one after the other in this process). The collections go to the jobs through
+    ``backend.put`` (Ray: the object store, once per host); checkpoints are read from
+    ``cfg.runs_dir``, which must be the same path on every host. Results come back here and
+    every file is written by this process."""
     from w2e_ros.core.sim_world import SimWorld
 
-    cats_cfg = load_categories()
+    backend = backend or LocalBackend(1)
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.json").write_text(json.dumps(asdict(cfg), indent=1, default=str))
     world = world or SimWorld()
     train_all = InteractionData.load(cfg.train_data) if cfg.train_data else None
     test_all = InteractionData.load(cfg.test_data) if cfg.test_data else None
-    max_budget = max(cfg.budgets)
+    _GROUPS.clear()  # this process's jobs use the caller's world
+    groups = {(p, c): _group(cfg, p, c, test_all, world)
+              for p in cfg.primitives for c in cfg.combos}
+    train_h, test_h = backend.put(train_all), backend.put(test_all)
+    jobs = [_Run(cfg, p, c, s, m, train_h, test_h) for p in cfg.primitives
+            for c in cfg.combos for s in cfg.seeds for m in cfg.methods]
+    preds: dict[tuple[str, str], dict[str, np.ndarray]] = {k: {} for k in groups}
+    explored: dict[tuple[str, str], dict[str, Any]] = {k: {} for k in groups}
     heat_done: set[str] = set()
-    t_start = time.perf_counter()
-    jobs = [(p, c, s, m) for p in cfg.primitives for c in cfg.combos for s in cfg.seeds
-            for m in cfg.methods]
-    done = 0
-    for prim in cfg.primitives:
-        for combo in cfg.combos:
-            novel = cats_cfg.novel(combo)
-            if cfg.categories:
-                novel = [c for c in novel if c in cfg.categories]
-            test = None
-            if test_all is not None:
-                test = InteractionData.concat([test_all.select(
-                    primitive=prim, categories=[c],
-                    instances=evaluation_instances(c, cfg.validate, cfg.explore_objects))
-                    for c in novel])
-            ev = _Evaluator(cfg, world, novel, prim, test)
-            preds: dict[str, np.ndarray] = {}
-            explored_log: dict[str, Any] = {}
-            for seed in cfg.seeds:
-                for method in cfg.methods:
-                    done += 1
-                    kind, strat_name = METHOD_SPEC[method]
-                    ckpt = find_checkpoint(cfg.runs_dir, kind, combo, prim)
-                    if ckpt is None:
-                        log.warning("skip %s %s %s: no %s checkpoint in %s (w2e train --method "
-                                    "%s --combo %s --primitive %s)", method, combo, prim, kind,
-                                    cfg.runs_dir, kind, combo, prim)
-                        continue
-                    t0 = time.perf_counter()
-                    torch.manual_seed(seed)
-                    model, meta = load_model(ckpt)
-                    strategy = get_strategy(strat_name)
-                    ecfg = ExploreConfig(**{**asdict(cfg.explore), "budget": max_budget,
-                                            "snapshot_budgets": tuple(cfg.budgets),
-                                            "seed": seed})
-                    replay = None
-                    if train_all is not None and strategy.explores:
-                        replay = replay_data(train_all, meta, prim)
-                    models: dict[str, dict[int, W2EModel]] = {}
-                    if strategy.explores:
-                        runs = fewshot(model, meta, world, novel, strategy, ecfg, prim, replay,
-                                       cfg.mode, cfg.explore_objects)
-                        for group, (res, explorer) in runs.items():
-                            snaps = {b: explorer.model_at(res.snapshots[b])
-                                     for b in (0, *cfg.budgets)}
-                            for c in (novel if group == "all" else [group]):
-                                models[c] = snaps
-                            explored_log[f"{method}_s{seed}_{group}"] = {
-                                "stopped": res.stopped, "steps": [asdict(x) for x in res.steps],
-                                "mean_similarity": res.mean_similarity,
-                                "fit": explorer.fit_log}
-                    else:
-                        models = {c: {b: model for b in (0, *cfg.budgets)} for c in novel}
-                    for b in (0, *cfg.budgets):
-                        if cfg.mode == "all":
-                            p = ev.predict(models[novel[0]][b])
-                        else:  # each category judged with its own adapted model
-                            p = _merge_per_category(ev, models, b, novel)
-                        for k, v in p.items():
-                            preds[f"{method}|{seed}|{b}|{k}"] = v
-                    elapsed = time.perf_counter() - t_start
-                    log.info("[%d/%d] %s %s %s seed %d done in %.0f s (eta %.0f s)", done,
-                             len(jobs), prim, combo, method, seed, time.perf_counter() - t0,
-                             elapsed / done * (len(jobs) - done))
-                    _save_predictions(out / f"predictions_{combo}_{prim}.npz", preds, ev)
-                    if cfg.heatmaps and method == "similarity" and prim not in heat_done:
-                        _heatmaps(out, prim, combo, world, novel, models, cfg)
-                        heat_done.add(prim)
-            (out / f"explored_{combo}_{prim}.json").write_text(json.dumps(explored_log))
+    t_start, done = time.perf_counter(), 0
+    log.info("%d runs on the %s backend (%d at a time)", len(jobs), backend.name,
+             backend.parallelism)
+    with contextlib.closing(backend.map(_run_one, jobs)) as results:
+        for i, res in results:
+            run, done = jobs[i], done + 1
+            prim, combo, key = run.primitive, run.combo, (run.primitive, run.combo)
+            if "skipped" in res:
+                log.warning(res["skipped"])
+                continue
+            preds[key].update(res["preds"])
+            explored[key].update(res["explored"])
+            elapsed = time.perf_counter() - t_start
+            log.info("[%d/%d] %s %s %s seed %d done in %.0f s (eta %.0f s)", done, len(jobs),
+                     prim, combo, run.method, run.seed, res["seconds"],
+                     elapsed / done * (len(jobs) - done))
+            _save_predictions(out / f"predictions_{combo}_{prim}.npz", preds[key],
+                              groups[key][2])
+            (out / f"explored_{combo}_{prim}.json").write_text(json.dumps(explored[key]))
+            if res.get("heat") and prim not in heat_done:  # the first similarity run to end
+                _heatmaps(out, prim, combo, world, groups[key][1], res["heat"], cfg)
+                heat_done.add(prim)
     summary = summarize(out, cfg)
     log.info("benchmark done in %.0f s: %s", time.perf_counter() - t_start, out)
     return summary
+
+
+@dataclass
+class _Run:
+    """One (primitive, combination, seed, method) run: a backend job. ``train`` / ``test``
+    are ``Backend.put`` handles of the collections (or None)."""
+
+    cfg: BenchmarkConfig
+    primitive: str
+    combo: str
+    seed: int
+    method: str
+    train: Any
+    test: Any
+
+
+# (config, primitive, combination) -> (world, novel categories, evaluator), per process: a
+# worker builds them once and keeps them for the next runs of the same group
+_GROUPS: dict[tuple[str, str, str], tuple[Any, list[str], _Evaluator]] = {}
+_WORKER_WORLD: Any = None
+
+
+def _group(cfg: BenchmarkConfig, prim: str, combo: str, test_all: InteractionData | None,
+           world: Any | None = None) -> tuple[Any, list[str], _Evaluator]:
+    """The world, novel categories and evaluator of one (primitive, combination)."""
+    global _WORKER_WORLD
+    key = (json.dumps(asdict(cfg), default=str), prim, combo)
+    if key not in _GROUPS:
+        if world is None:
+            from w2e_ros.core.sim_world import SimWorld
+
+            _WORKER_WORLD = _WORKER_WORLD or SimWorld()
+            world = _WORKER_WORLD
+        novel = load_categories().novel(combo)
+        if cfg.categories:
+            novel = [c for c in novel if c in cfg.categories]
+        test = None
+        if test_all is not None:
+            test = InteractionData.concat([test_all.select(
+                primitive=prim, categories=[c],
+                instances=evaluation_instances(c, cfg.validate, cfg.explore_objects))
+                for c in novel])
+        _GROUPS[key] = (world, novel, _Evaluator(cfg, world, novel, prim, test))
+    return _GROUPS[key]
+
+
+def _run_one(run: _Run) -> dict[str, Any]:
+    """Explore with one method and judge its snapshots: the predictions, the exploration
+    log and, for the similarity method, the models the heatmaps show."""
+    cfg, prim, combo, seed, method = run.cfg, run.primitive, run.combo, run.seed, run.method
+    world, novel, ev = _group(cfg, prim, combo, resolve(run.test))
+    max_budget = max(cfg.budgets)
+    kind, strat_name = METHOD_SPEC[method]
+    ckpt = find_checkpoint(cfg.runs_dir, kind, combo, prim)
+    if ckpt is None:
+        return {"skipped": f"skip {method} {combo} {prim}: no {kind} checkpoint in "
+                           f"{cfg.runs_dir} (w2e train --method {kind} --combo {combo} "
+                           f"--primitive {prim})"}
+    t0 = time.perf_counter()
+    torch.manual_seed(seed)
+    model, meta = load_model(ckpt)
+    strategy = get_strategy(strat_name)
+    ecfg = ExploreConfig(**{**asdict(cfg.explore), "budget": max_budget,
+                            "snapshot_budgets": tuple(cfg.budgets), "seed": seed})
+    train_all = resolve(run.train)
+    replay = None
+    if train_all is not None and strategy.explores:
+        replay = replay_data(train_all, meta, prim)
+    models: dict[str, dict[int, W2EModel]] = {}
+    explored_log: dict[str, Any] = {}
+    if strategy.explores:
+        runs = fewshot(model, meta, world, novel, strategy, ecfg, prim, replay,
+                       cfg.mode, cfg.explore_objects)
+        for group, (res, explorer) in runs.items():
+            snaps = {b: explorer.model_at(res.snapshots[b]) for b in (0, *cfg.budgets)}
+            for c in (novel if group == "all" else [group]):
+                models[c] = snaps
+            explored_log[f"{method}_s{seed}_{group}"] = {
+                "stopped": res.stopped, "steps": [asdict(x) for x in res.steps],
+                "mean_similarity": res.mean_similarity, "fit": explorer.fit_log}
+    else:
+        models = {c: {b: model for b in (0, *cfg.budgets)} for c in novel}
+    preds: dict[str, np.ndarray] = {}
+    for b in (0, *cfg.budgets):
+        if cfg.mode == "all":
+            p = ev.predict(models[novel[0]][b])
+        else:  # each category judged with its own adapted model
+            p = _merge_per_category(ev, models, b, novel)
+        for k, v in p.items():
+            preds[f"{method}|{seed}|{b}|{k}"] = v
+    heat = None
+    if cfg.heatmaps and method == "similarity":
+        heat = {c: {0: models[c][0], max_budget: models[c][max_budget]} for c in novel[:3]}
+    return {"preds": preds, "explored": explored_log, "heat": heat,
+            "seconds": time.perf_counter() - t0}
 
 
 def _merge_per_category(ev: _Evaluator, models: dict[str, dict[int, W2EModel]], b: int,
