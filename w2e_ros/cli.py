@@ -91,7 +91,9 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
         "train", help="train the affordance + similarity model (or a baseline) on collected data",
         description="Train one model per primitive. w2e: C_aff trains the affordance head, "
                     "C_sim the similarity head; where2act: affordance on the three training "
-                    "categories; fulldata: affordance on all 14 categories.")
+                    "categories; fulldata: affordance on all 14 categories. Data-parallel: "
+                    "torchrun --nproc_per_node N -m w2e_ros.cli train ... (gloo on CPUs, "
+                    "NCCL on GPUs; the batch is --clouds x N).")
     p.add_argument("--data", required=True, help="collection directory (w2e collect --out)")
     p.add_argument("--out", default=None,
                    help="run directory (default runs/<method>_<combo>_<primitive>)")
@@ -102,7 +104,8 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
                    help="most optimizer steps (default 6000; validation may stop earlier)")
     p.add_argument("--epochs", type=float, default=None,
                    help="alternative to --steps: passes over the training interactions")
-    p.add_argument("--clouds", type=int, default=4, help="clouds (encoder passes) per batch")
+    p.add_argument("--clouds", type=int, default=4,
+                   help="clouds (encoder passes) per batch; under torchrun per process")
     p.add_argument("--per-cloud", type=int, default=32, help="interactions per cloud")
     p.add_argument("--lr", type=float, default=1e-3)
     p.add_argument("--weight-decay", type=float, default=1e-5)
@@ -159,7 +162,8 @@ def _run_train(a: argparse.Namespace) -> int:
         val = InteractionData.concat([InteractionData.load(d) for d in a.val_data])
         val = val.select(primitive=a.primitive)
     path = train(cfg, a.data, out, resume=a.resume, val_data=val, progress=not a.no_progress)
-    print(f"model: {path}")
+    if os.environ.get("RANK", "0") == "0":  # torchrun: process 0 speaks for the run
+        print(f"model: {path}")
     return 0
 
 

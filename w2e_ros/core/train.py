@@ -17,6 +17,13 @@ the run is judged every ``val_every`` steps on held-out instances, keeps the bes
 stops when the score has not improved for ``patience`` validations.
 Baselines: ``where2act`` (affordance only, all three training categories) and ``fulldata``
 (affordance only, all 14 categories).
+
+Under ``torchrun`` (``WORLD_SIZE`` > 1) the same run is data-parallel with PyTorch's
+DistributedDataParallel (gloo on CPUs, NCCL on GPUs): every process draws the same global
+batch of ``clouds x processes`` clouds and trains on its own ``clouds``; the losses are
+weighted by the global row counts and the running-accuracy counters are summed over the
+processes, so N processes follow the loss curve of one process with an N times larger batch.
+Process 0 writes the run directory.
 """
 
 from __future__ import annotations
@@ -24,13 +31,17 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
+import torch.distributed as dist
 import torch.nn.functional as F
+from torch import nn
 from tqdm import tqdm
 
 from w2e_ros.core.actions import encode_rotation
@@ -158,17 +169,25 @@ class RunningAccuracy:
 
 def training_losses(model: W2EModel, batch: Batch, acc: RunningAccuracy,
                     sim_weight: float = 1.0, sim_grad_to_encoder: bool = True,
-                    sim_loss: str = "bce") -> tuple[torch.Tensor, dict[str, float]]:
+                    sim_loss: str = "bce", shard: Shard | None = None
+                    ) -> tuple[torch.Tensor, dict[str, float]]:
     """BCE on the affordance interactions + similarity loss to the running accuracy
     (``bce``: soft-target BCE, ``l1``: absolute error).
 
     The affordance head (and, through it, the encoder) only sees ``aff_mask`` interactions;
     the other interactions' affordance is predicted without gradient, to count accuracy.
+    With ``shard`` (data-parallel: ``batch`` is this process's part of a global batch) each
+    mean is weighted so that DDP's average over processes is the global batch's mean, and
+    the accuracy counters are updated with every process's predictions.
     """
     feats = model.encode(batch.clouds)  # (B, N, F)
     f = feats[batch.cloud_of, batch.point_index]  # (K, F)
     zero = f.sum() * 0.0
     am, sm = batch.aff_mask, batch.sim_mask
+    scale_aff = scale_sim = 1.0
+    if shard is not None:
+        scale_aff = shard.world * int(am.sum()) / max(shard.aff_rows, 1)
+        scale_sim = shard.world * int(sm.sum()) / max(len(shard.sim_keys), 1)
     stats: dict[str, float] = {}
     if bool(am.any()):
         logits = model.aff_head(f[am], batch.actions[am])
@@ -182,8 +201,9 @@ def training_losses(model: W2EModel, batch: Batch, acc: RunningAccuracy,
         with torch.no_grad():  # counted only: no gradient to the affordance head
             pred = model.aff_head(f[sm].detach(), batch.actions[sm]) > 0
             right = (pred.float() == batch.success[sm]).cpu().numpy()
-        target = torch.as_tensor(acc.update(batch.interaction[sm.cpu().numpy()], right),
-                                 dtype=torch.float32, device=f.device)
+        keys = batch.interaction[sm.cpu().numpy()]
+        rate = acc.update(keys, right) if shard is None else shard.update(acc, right, f.device)
+        target = torch.as_tensor(rate, dtype=torch.float32, device=f.device)
         fs = f[sm] if sim_grad_to_encoder else f[sm].detach()
         sim_logit = model.sim_head(fs, batch.actions[sm])
         sim = torch.sigmoid(sim_logit)
@@ -196,10 +216,94 @@ def training_losses(model: W2EModel, batch: Batch, acc: RunningAccuracy,
         stats["sim_mean"] = float(sim.detach().mean())
         stats["sim_target"] = float(target.mean())
         stats["pred_acc"] = float(right.mean())
+    loss_aff, loss_sim = scale_aff * loss_aff, scale_sim * loss_sim
     loss = loss_aff + sim_weight * loss_sim
     stats.update(loss=loss.item(), loss_aff=loss_aff.item(), loss_sim=loss_sim.item(),
                  pos_rate=float(batch.success.mean()))
     return loss, stats
+
+
+@dataclass
+class Shard:
+    """This process's part of a data-parallel global batch: what it needs to know of the
+    whole (every process draws the same global batch, so no exchange is needed for it)."""
+
+    world: int  # processes
+    aff_rows: int  # affordance rows in the global batch
+    sim_keys: np.ndarray  # (S,) counter keys of the global batch's similarity rows, in order
+    sim_offset: int  # where this process's similarity rows start among them
+
+    def update(self, acc: RunningAccuracy, right: np.ndarray,
+               device: torch.device) -> np.ndarray:
+        """Count every process's predictions (one all-reduce), as one process with the whole
+        batch would; return the running accuracy of this process's rows."""
+        full = torch.zeros(len(self.sim_keys), dtype=torch.int64, device=device)
+        full[self.sim_offset:self.sim_offset + len(right)] = torch.as_tensor(
+            np.asarray(right, np.int64), device=device)
+        dist.all_reduce(full)
+        rate = acc.update(self.sim_keys, full.cpu().numpy())
+        return rate[self.sim_offset:self.sim_offset + len(right)]
+
+
+@dataclass
+class Distributed:
+    """This process's place in a ``torchrun`` job (its ``RANK``, ``WORLD_SIZE`` and
+    ``LOCAL_RANK``); the default is a single process."""
+
+    rank: int = 0
+    world: int = 1
+    local_rank: int = 0
+
+    @property
+    def active(self) -> bool:
+        return self.world > 1
+
+    @property
+    def main(self) -> bool:
+        """Process 0 writes the run directory and logs."""
+        return self.rank == 0
+
+    @staticmethod
+    def from_env() -> Distributed:
+        """Join the process group ``torchrun`` describes in the environment: NCCL when this
+        host has GPUs (one per local rank), gloo on CPUs. No torchrun: a single process."""
+        world = int(os.environ.get("WORLD_SIZE", "1"))
+        if world <= 1:
+            return Distributed()
+        d = Distributed(int(os.environ["RANK"]), world, int(os.environ.get("LOCAL_RANK", "0")))
+        if not dist.is_initialized():
+            if torch.cuda.is_available():
+                torch.cuda.set_device(d.local_rank)
+            dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+        return d
+
+    @property
+    def device(self) -> torch.device:
+        if self.active and torch.cuda.is_available():
+            return torch.device("cuda", self.local_rank)
+        return default_device()
+
+    def mean(self, stats: dict[str, float], keys: tuple[str, ...]) -> dict[str, float]:
+        """``keys`` of ``stats`` averaged over the processes (every process has them)."""
+        if not self.active:
+            return stats
+        t = torch.tensor([stats[k] for k in keys], dtype=torch.float64, device=self.device)
+        dist.all_reduce(t)
+        return {**stats, **{k: float(v) / self.world for k, v in zip(keys, t.tolist(),
+                                                                      strict=True)}}
+
+
+class _Losses(nn.Module):
+    """The model with the loss as its forward: what DDP wraps, so that a forward through
+    DDP prepares the gradient all-reduce of the backward that follows."""
+
+    def __init__(self, model: W2EModel) -> None:
+        super().__init__()
+        self.model = model
+
+    def forward(self, batch: Batch, loss_fn: Callable[..., tuple[torch.Tensor, dict]]
+                ) -> tuple[torch.Tensor, dict[str, float]]:
+        return loss_fn(self.model, batch)
 
 
 class BalancedSampler:
@@ -302,10 +406,11 @@ class Trainer:
     """Model + Adam + sampler + running-accuracy counters; checkpoints and resumes."""
 
     def __init__(self, cfg: TrainConfig, data: InteractionData,
-                 model_cfg: ModelConfig | None = None, device: torch.device | None = None
-                 ) -> None:
+                 model_cfg: ModelConfig | None = None, device: torch.device | None = None,
+                 distributed: Distributed | None = None) -> None:
         self.cfg, self.data = cfg, data
-        self.device = device or default_device()
+        self.dist = distributed or Distributed()
+        self.device = device or self.dist.device
         make_deterministic(cfg.seed)
         self.rng = np.random.default_rng(cfg.seed)
         self.aff_cats, self.sim_cats = method_categories(cfg.method, cfg.combo)
@@ -314,27 +419,62 @@ class Trainer:
         self.opt = torch.optim.Adam(self.model.parameters(), lr=cfg.lr,
                                     weight_decay=cfg.weight_decay)
         self.acc = RunningAccuracy(data.num_interactions)
+        # every process draws the same global batch (same seed) and keeps its own clouds
         self.sampler = BalancedSampler(data, tuple(dict.fromkeys(self.aff_cats + self.sim_cats)),
-                                       cfg.clouds_per_batch, cfg.interactions_per_cloud, self.rng,
+                                       cfg.clouds_per_batch * self.dist.world,
+                                       cfg.interactions_per_cloud, self.rng,
                                        self.aff_cats if self.sim_cats else (), cfg.aff_share,
                                        cfg.flip_share)
+        self.ddp: nn.Module | None = None
+        if self.dist.active:
+            from torch.nn.parallel import DistributedDataParallel
+
+            # a step's batch may hold no affordance (or no similarity) rows: unused heads
+            self.ddp = DistributedDataParallel(
+                _Losses(self.model), find_unused_parameters=True,
+                device_ids=[self.device.index] if self.device.type == "cuda" else None)
         self.step = 0
         self.best_score, self.best_step, self.bad_validations = -np.inf, 0, 0
 
     @property
     def steps_per_epoch(self) -> int:
-        per_step = self.cfg.clouds_per_batch * self.cfg.interactions_per_cloud
+        per_step = self.cfg.clouds_per_batch * self.cfg.interactions_per_cloud * self.dist.world
         return max(1, math.ceil(self.data.num_interactions / per_step))
 
     def next_batch(self) -> Batch:
         rows, flip = self.sampler.sample()
+        if self.dist.active:
+            raise RuntimeError("data-parallel steps draw their batch in train_step")
         return make_batch(self.data, rows, self.aff_cats, self.sim_cats, self.device, flip=flip)
+
+    def _shard_batch(self) -> tuple[Batch, Shard]:
+        """This process's clouds of the global batch (every cloud gives exactly
+        ``interactions_per_cloud`` consecutive rows) and what it needs of the rest."""
+        rows, flip = self.sampler.sample()
+        cats = self.data.category[self.data.obs_index[rows]]
+        sim = np.isin(cats, list(self.sim_cats))
+        per = self.cfg.clouds_per_batch * self.cfg.interactions_per_cloud
+        lo, hi = self.dist.rank * per, (self.dist.rank + 1) * per
+        shard = Shard(self.dist.world, int(np.isin(cats, list(self.aff_cats)).sum()),
+                      rows[sim], int(sim[:lo].sum()))
+        batch = make_batch(self.data, rows[lo:hi], self.aff_cats, self.sim_cats, self.device,
+                           flip=flip[lo:hi])
+        return batch, shard
 
     def train_step(self, batch: Batch | None = None) -> dict[str, float]:
         self.model.train()
-        batch = batch if batch is not None else self.next_batch()
-        loss, stats = training_losses(self.model, batch, self.acc, self.cfg.sim_weight,
-                                      self.cfg.sim_grad_to_encoder, self.cfg.sim_loss)
+        if self.ddp is not None:
+            if batch is not None:
+                raise ValueError("data-parallel steps draw their own batch")
+            batch, shard = self._shard_batch()
+            loss, stats = self.ddp(batch, lambda m, b: training_losses(
+                m, b, self.acc, self.cfg.sim_weight, self.cfg.sim_grad_to_encoder,
+                self.cfg.sim_loss, shard))
+            stats = self.dist.mean(stats, ("loss", "loss_aff", "loss_sim"))  # the global ones
+        else:
+            batch = batch if batch is not None else self.next_batch()
+            loss, stats = training_losses(self.model, batch, self.acc, self.cfg.sim_weight,
+                                          self.cfg.sim_grad_to_encoder, self.cfg.sim_loss)
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         self.opt.step()
@@ -349,7 +489,10 @@ class Trainer:
     def save(self, run_dir: Path, best: bool = True) -> None:
         """``state.pt``: the latest weights and everything to resume; with ``best`` also
         ``model.pt``, the model to use (a few MB): the caller passes ``best`` when the current
-        weights are the best validated so far, or always when there is no validation."""
+        weights are the best validated so far, or always when there is no validation.
+        Data-parallel: process 0 only (every process holds the same weights)."""
+        if not self.dist.main:
+            return
         if best:
             save_model(run_dir / "model.pt", self.model,
                        {**self.meta(), "best_score": float(self.best_score)})
@@ -387,13 +530,20 @@ def train(cfg: TrainConfig, data_dir: str | Path, out_dir: str | Path, resume: b
           val_data: InteractionData | None = None, progress: bool = True,
           model_cfg: ModelConfig | None = None) -> Path:
     """Train one model; writes ``model.pt`` (best validated, else last), ``state.pt``,
-    ``metrics.jsonl`` and, with validation data, ``curves.png`` into ``out_dir``."""
+    ``metrics.jsonl`` and, with validation data, ``curves.png`` into ``out_dir``.
+
+    Under ``torchrun`` every process runs this with the same arguments; each validates the
+    (identical) model so all stop together, and process 0 writes and logs."""
     torch.set_num_threads(cfg.threads)
+    distributed = Distributed.from_env()
+    main = distributed.main
+    if not main:  # a torchrun worker: process 0 speaks for the run
+        logging.getLogger("w2e").setLevel(logging.WARNING)
     run_dir = Path(out_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     data = load_training_data(data_dir, cfg.method, cfg.combo, cfg.primitive,
                               cfg.include_invalid)
-    trainer = Trainer(cfg, data, model_cfg)
+    trainer = Trainer(cfg, data, model_cfg, distributed=distributed)
     validator = None
     if val_data is not None:
         validator = Validator(val_data, trainer.aff_cats, trainer.sim_cats, cfg.primitive)
@@ -401,23 +551,25 @@ def train(cfg: TrainConfig, data_dir: str | Path, out_dir: str | Path, resume: b
     if resume and (run_dir / "state.pt").exists():
         trainer.resume(run_dir)
         log.info("resumed %s at step %d", run_dir, trainer.step)
-    elif (run_dir / "metrics.jsonl").exists():
+    elif main and (run_dir / "metrics.jsonl").exists():
         (run_dir / "metrics.jsonl").unlink()
-    (run_dir / "config.json").write_text(json.dumps(
-        {"train": asdict(trainer.cfg), "model": trainer.model.cfg.to_dict(),
-         "interactions": data.num_interactions, "observations": data.num_observations,
-         "positive_rate": data.positive_rate(), **trainer.meta()}, indent=2))
+    if main:
+        (run_dir / "config.json").write_text(json.dumps(
+            {"train": asdict(trainer.cfg), "model": trainer.model.cfg.to_dict(),
+             "interactions": data.num_interactions, "observations": data.num_observations,
+             "positive_rate": data.positive_rate(), "processes": distributed.world,
+             **trainer.meta()}, indent=2))
     log.info("%s: %d interactions on %d clouds (%.0f%% positive), aff=%s sim=%s, up to %d "
-             "steps (%d per epoch) on %s", run_dir.name, data.num_interactions,
+             "steps (%d per epoch) on %s x %d", run_dir.name, data.num_interactions,
              data.num_observations, 100 * data.positive_rate(), ",".join(trainer.aff_cats),
              ",".join(trainer.sim_cats) or "-", cfg.steps, trainer.steps_per_epoch,
-             trainer.device)
+             trainer.device, distributed.world)
     window: list[dict[str, float]] = []
     t0, start = time.perf_counter(), trainer.step
-    bar = tqdm(total=cfg.steps, initial=trainer.step, disable=not progress, unit="step",
-               dynamic_ncols=True)
+    bar = tqdm(total=cfg.steps, initial=trainer.step, disable=not (progress and main),
+               unit="step", dynamic_ncols=True)
     stop = validator is not None and trainer.bad_validations >= cfg.patience  # finished run
-    with (run_dir / "metrics.jsonl").open("a") as mlog:
+    with (run_dir / "metrics.jsonl" if main else Path(os.devnull)).open("a") as mlog:
         while trainer.step < cfg.steps and not stop:
             window.append(trainer.train_step())
             bar.update(1)
@@ -455,6 +607,10 @@ def train(cfg: TrainConfig, data_dir: str | Path, out_dir: str | Path, resume: b
                 trainer.save(run_dir, best=validator is None)
     bar.close()
     trainer.save(run_dir, best=validator is None)
+    if distributed.active:  # the rest is one process's work on the saved model
+        dist.destroy_process_group()
+        if not main:
+            return run_dir / "model.pt"
     if validator is not None:
         from w2e_ros.core.viz import training_curves
 
