@@ -175,3 +175,57 @@ def test_dry_run_only_publishes_the_plan(tmp_path):
         assert robot.commanded == []
     finally:
         robot.close()
+
+
+def test_executor_judging_by_joints_refuses_a_robot_side_without_object_joints():
+    """An arm (the adapter, a real Panda) measures no object joints; judging "nothing moved"
+    from that would label every trial a failure and teach the model so. The executor says
+    which setting to change instead."""
+    from rclpy.action import ActionServer
+    from w2e_msgs.action import ExecuteInteraction
+
+    from w2e_ros.nodes.executor_node import GripperExecutorNode
+    from w2e_ros.ros.conversions import action_to_interaction
+
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=pick_domain_id(43))
+    arm = Node("arm_like_robot_side", context=ctx)
+    followed: list[int] = []
+
+    def follow(goal_handle):  # what the adapter answers: done, valid, no object joints
+        followed.append(len(goal_handle.request.waypoints))
+        goal_handle.succeed()
+        return FollowWaypoints.Result(valid=True, message="")
+
+    server = ActionServer(arm, FollowWaypoints, "follow_waypoints", follow)
+    executor_node = GripperExecutorNode(context=ctx)
+    client_node = Node("user", context=ctx)
+    ex = MultiThreadedExecutor(num_threads=4, context=ctx)
+    for n in (arm, executor_node, client_node):
+        ex.add_node(n)
+    spinner = threading.Thread(target=ex.spin, daemon=True)
+    spinner.start()
+    try:
+        client = ActionClient(client_node, ExecuteInteraction, "execute_interaction")
+        assert client.wait_for_server(timeout_sec=10.0)
+        act = Action(np.array([0.5, 0.0, 0.4]), np.array([-1.0, 0.0, 0.0]),
+                     np.array([0.0, 0.0, 1.0]), "pull")
+        sent = client.send_goal_async(ExecuteInteraction.Goal(
+            interaction=action_to_interaction(act, 1)))
+        deadline = time.monotonic() + 30.0
+        while not sent.done() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        result = sent.result().get_result_async()
+        while not result.done() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        outcome = result.result().result.outcome
+        assert followed, "the robot side never got the trajectory"
+        assert not outcome.valid and not outcome.success
+        assert "outcome_source: clouds" in outcome.reason
+    finally:
+        ex.shutdown(timeout_sec=0.0)
+        spinner.join(timeout=5.0)
+        server.destroy()
+        for n in (arm, executor_node, client_node):
+            n.destroy_node()
+        rclpy.try_shutdown(context=ctx)

@@ -189,6 +189,11 @@ class GripperExecutorNode(Node):
                 after = self._wait_cloud(interaction.object_id, action, self._last_end)
         if not res.valid and not res.joints_before.position:
             return fail(res.message or "the robot could not follow the trajectory")
+        if not clouds and res.valid and not len(res.joints_before.position):
+            # a real arm (or the arm adapter) measures no object joints: judging "nothing
+            # moved" from that would label every trial a failure and teach the model so
+            return fail("outcome_source joints, but the robot side reported no object joint "
+                        "states (a real arm or the arm adapter): set outcome_source: clouds")
         trial = outcome_from_measurement(
             action,
             joints_before=np.asarray(res.joints_before.position),
