@@ -15,6 +15,8 @@ import sys
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
+from w2e_ros.core.strategies import STRATEGIES
+
 if TYPE_CHECKING:
     from w2e_ros.core.backends import Backend
     from w2e_ros.core.config import ExploreConfig
@@ -219,8 +221,7 @@ def _add_fewshot(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--replay-data", default=None,
                    help="training collection replayed during fine-tuning (~1%%)")
     p.add_argument("--strategy", default="similarity",
-                   choices=["similarity", "similarity_sampled", "where2act", "nosim", "random",
-                            "oracle", "none"])
+                   choices=list(STRATEGIES))
     p.add_argument("--mode", default="all", choices=["all", "per-category"],
                    help="all novel categories in one run, or one run per category")
     p.add_argument("--categories", nargs="+", default=None,
@@ -412,8 +413,7 @@ def _add_benchmark(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--primitives", nargs="+", default=["push", "pull"])
     p.add_argument("--methods", nargs="+", default=["none", "random", "where2act", "nosim",
                                                     "similarity", "oracle", "fulldata"],
-                   choices=["none", "random", "where2act", "nosim", "similarity",
-                            "similarity_sampled", "oracle", "fulldata"])
+                   choices=[*STRATEGIES, "fulldata"])  # = benchmark.METHOD_SPEC
     p.add_argument("--budgets", nargs="+", type=int, default=[1, 2, 5])
     p.add_argument("--mode", default="all", choices=["all", "per-category"])
     p.add_argument("--categories", nargs="+", default=None,

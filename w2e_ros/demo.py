@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 from w2e_ros.core.categories import load_categories
+from w2e_ros.core.strategies import STRATEGIES
 from w2e_ros.paths import default_checkpoint
 
 
@@ -40,6 +41,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--checkpoint", default=None,
                    help="model of the primitive (default: shipped checkpoints/w2e_cfw_*.pt)")
     p.add_argument("--out", default="results/demo", help="directory for the PNGs and summary")
+    p.add_argument("--strategy", default="similarity", choices=[
+        n for n, st in STRATEGIES.items() if st.explores and not st.needs_labels],
+                   help="the planner's exploration rule (random: the baseline to compare with)")
+    p.add_argument("--seed", type=int, default=0,
+                   help="the planner's seed (candidate sampling, start states)")
     p.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID of the stack")
     p.add_argument("--quiet-nodes", action="store_true", help="hide the nodes' output")
 
@@ -99,7 +105,8 @@ def run(a: argparse.Namespace) -> int:
     env = ros_env(domain_id=domain, log_dir=out / "ros_log")
     extra = {"inference": ["-p", f"{a.primitive}_checkpoint:={ckpt.resolve()}",
                            "-p", f"adapted_dir:={(out / 'adapted').resolve()}"],
-             "planner": ["-p", f"exploration_log_dir:={(out / 'exploration').resolve()}"]}
+             "planner": ["-p", f"exploration_log_dir:={(out / 'exploration').resolve()}",
+                         "-p", f"strategy:={a.strategy}", "-p", f"seed:={a.seed}"]}
     print(f"[demo] {a.category} ({a.primitive}), model {ckpt}; test {test}, explore {explore}")
     t_all = time.perf_counter()
     with Stack(env=env, extra_args=extra, output=None if a.quiet_nodes else sys.stdout,
@@ -121,6 +128,7 @@ def run(a: argparse.Namespace) -> int:
     summary = {
         "category": a.category, "primitive": a.primitive, "checkpoint": str(ckpt),
         "test_instances": test, "explore_instances": explore, "budget": a.budget,
+        "bar": a.bar, "strategy": a.strategy, "seed": a.seed,
         "success_rate_before": before.success_rate, "success_rate_after": after.success_rate,
         "explore": {"ok": explored.success, "message": explored.message,
                     "interactions": explored.interactions_used,

@@ -46,19 +46,16 @@ from w2e_ros.core.evaluate import (
 from w2e_ros.core.explore import fewshot
 from w2e_ros.core.metrics import auroc, average_precision, fscore
 from w2e_ros.core.model import W2EModel, load_model
-from w2e_ros.core.strategies import get_strategy
+from w2e_ros.core.strategies import STRATEGIES, get_strategy
 from w2e_ros.core.train import replay_data
 
 log = logging.getLogger("w2e.benchmark")
 
 METHOD_SPEC: dict[str, tuple[str, str]] = {
-    "none": ("w2e", "none"),
-    "random": ("w2e", "random"),
+    # method -> (trained model kind, strategy): every strategy with our model, the Where2Act
+    # baseline with its own rule, and Full-data (novel categories in training) unexplored
+    **{name: ("w2e", name) for name in STRATEGIES},
     "where2act": ("where2act", "where2act"),
-    "nosim": ("w2e", "nosim"),
-    "similarity": ("w2e", "similarity"),
-    "similarity_sampled": ("w2e", "similarity_sampled"),
-    "oracle": ("w2e", "oracle"),
     "fulldata": ("fulldata", "none"),
 }
 REFERENCES = ("random", "none")  # paired differences are reported against these
