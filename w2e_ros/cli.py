@@ -416,6 +416,10 @@ def _add_benchmark(sub: argparse._SubParsersAction) -> None:
                    choices=[*STRATEGIES, "fulldata"])  # = benchmark.METHOD_SPEC
     p.add_argument("--budgets", nargs="+", type=int, default=[1, 2, 5])
     p.add_argument("--mode", default="all", choices=["all", "per-category"])
+    p.add_argument("--probe", default="proposal", choices=["proposal", "maps"],
+                   help="sample-success candidates: the proposal distribution (what the model "
+                        "explores), or every movable point x --dirs hemisphere frames (what the "
+                        "stack's manipulate scores)")
     p.add_argument("--categories", nargs="+", default=None,
                    help="only these novel categories (reduced run)")
     p.add_argument("--explore-objects", type=int, default=10, help="per novel category")
@@ -450,7 +454,7 @@ def _run_benchmark(a: argparse.Namespace) -> int:
         methods=tuple(a.methods), budgets=tuple(a.budgets), mode=a.mode,
         categories=tuple(a.categories) if a.categories else None,
         explore_objects=a.explore_objects, test_objects=a.test_objects, validate=a.validate,
-        eval_points=a.points, eval_dirs=a.dirs, heatmaps=not a.no_heatmaps,
+        eval_points=a.points, eval_dirs=a.dirs, probe=a.probe, heatmaps=not a.no_heatmaps,
         bootstrap=a.bootstrap, explore=_explore_config(a))
     if a.summarize_only:
         summarize(a.out, cfg)

@@ -80,6 +80,7 @@ class BenchmarkConfig:
     validate: bool = False  # judge on held-out EXPLORE instances instead of the test split
     eval_points: int = 256
     eval_dirs: int = 8
+    probe: str = "proposal"  # sample success on proposal candidates | maps (the stack's)
     heatmaps: bool = True
     bootstrap: int = 500  # resamples for the intervals
     explore: ExploreConfig = field(default_factory=ExploreConfig)
@@ -109,7 +110,7 @@ class _Evaluator:
             self.probe = SuccessProbe(world, evaluation_targets(
                 cats, cfg.test_objects, validate=cfg.validate, explored=cfg.explore_objects),
                 primitive, cfg.eval_points, cfg.eval_dirs,
-                use_mask=cfg.explore.use_mask)
+                use_mask=cfg.explore.use_mask, sampler=cfg.probe)
 
     def predict(self, model: W2EModel) -> dict[str, np.ndarray]:
         out: dict[str, np.ndarray] = {}

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from w2e_ros.core.actions import encode_rotation
+from w2e_ros.core.actions import encode_rotation, sample_forward, sample_up
 from w2e_ros.core.data import InteractionData
 from w2e_ros.core.explore import Candidates, sample_candidates
 from w2e_ros.core.metrics import affordance_fscore_from_probs, success_rate
@@ -45,13 +45,30 @@ def fscore_by_category(model: W2EModel, data: InteractionData) -> dict[str, dict
     return out
 
 
+PROBE_SAMPLERS = ("proposal", "maps")
+
+
+def map_candidates(cloud: Any, dirs_per_point: int, rng: np.random.Generator,
+                   mask: np.ndarray | None = None) -> Candidates:
+    """Every point (of ``mask`` when it marks any) x ``dirs_per_point`` frames uniform over
+    the hemisphere facing into the surface, as the inference node's maps are sampled."""
+    pts = np.flatnonzero(mask) if mask is not None and np.any(mask) else np.arange(
+        len(cloud.points))
+    pidx = np.repeat(pts, dirs_per_point)
+    up = sample_up(np.asarray(cloud.normals)[pidx], rng)
+    return Candidates(pidx, up, sample_forward(up, rng))
+
+
 @dataclass
 class SuccessProbe:
     """Test objects with fixed candidate actions, so every model is judged on the same
     actions, and executed outcomes cached (the simulator is deterministic per target).
 
-    Candidates come from the proposal distribution, on the movable parts when ``use_mask``
-    (the reference's argmax of affordance x movable mask); the model executes its best one.
+    ``sampler`` says where the candidates come from: ``proposal`` (the distribution the
+    training data and the exploration are drawn from, on the movable parts when
+    ``use_mask``), or ``maps`` (what the stack's ``manipulate`` scores: every point of the
+    movable parts x ``dirs_per_point`` frames uniform over the hemisphere; the reference's
+    argmax of affordance x movable mask). The model executes its best one.
     """
 
     world: Any  # ExplorationWorld
@@ -61,14 +78,18 @@ class SuccessProbe:
     dirs_per_point: int = 8
     seed: int = 0
     use_mask: bool = True
+    sampler: str = "proposal"  # proposal | maps
 
     def __post_init__(self) -> None:
+        if self.sampler not in PROBE_SAMPLERS:
+            raise ValueError(f"sampler must be one of {PROBE_SAMPLERS}, got {self.sampler!r}")
         rng = np.random.default_rng(self.seed)
         self.clouds = [self.world.observe(t) for t in self.targets]
+        masks = [getattr(c, "movable", None) if self.use_mask else None for c in self.clouds]
         self.candidates: list[Candidates] = [
-            sample_candidates(c, self.points_per_object, self.dirs_per_point, rng,
-                              getattr(c, "movable", None) if self.use_mask else None)
-            for c in self.clouds]
+            sample_candidates(c, self.points_per_object, self.dirs_per_point, rng, m)
+            if self.sampler == "proposal" else map_candidates(c, self.dirs_per_point, rng, m)
+            for c, m in zip(self.clouds, masks, strict=True)]
         self._outcomes: dict[tuple[int, int], tuple[bool, bool]] = {}
 
     @torch.no_grad()
