@@ -25,6 +25,7 @@ setup(
         (f"share/{PACKAGE}/config", glob("config/*.yaml")),
         (f"share/{PACKAGE}/launch", glob("launch/*.launch.py")),
         (f"share/{PACKAGE}/checkpoints", glob("checkpoints/*.pt")),
+        (f"share/{PACKAGE}/checkpoints/replay_cfw", glob("checkpoints/replay_cfw/*")),
     ],
     package_data={"w2e_ros": ["../config/*.yaml"]},
     install_requires=["numpy", "pyyaml", "tqdm"],

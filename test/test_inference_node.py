@@ -348,3 +348,36 @@ def test_missing_checkpoint_is_reported_not_fatal(tmp_path):
         assert not res.success and "no push model" in res.message
     finally:
         g.close()
+
+
+def test_a_replay_pack_is_replayed_whole_and_a_collection_by_replay_fraction(
+        checkpoints, tmp_path):
+    from synthetic import synthetic_data
+
+    from w2e_ros.core.data import InteractionData
+    from w2e_ros.core.train import replay_pack
+
+    data = InteractionData.concat([
+        synthetic_data(obs_per_cat=5, per_obs=40, primitive="push"),
+        synthetic_data(obs_per_cat=5, per_obs=40, primitive="pull", seed=1)])
+    data.save_shard(tmp_path / "train" / "shard-00000.npz")
+    replay_pack(data, "w2e", "cfw", fraction=0.05).save_shard(
+        tmp_path / "pack" / "shard-00000.npz")
+    for source, rows in (("pack", 30), ("train", 6)):  # 5 % of 600; 1 % of 600
+        g = _Graph([Parameter("push_checkpoint", value=str(checkpoints["push"])),
+                    Parameter("pull_checkpoint", value=str(checkpoints["pull"])),
+                    Parameter("adapted_dir", value=str(tmp_path / "adapted")),
+                    Parameter("replay_data", value=str(tmp_path / source)),
+                    Parameter("threads", value=1)])
+        try:
+            for prim in ("push", "pull"):
+                assert len(g.node.served[prim].explorer.replay_rows) == rows, (source, prim)
+        finally:
+            g.close()
+    g = _Graph([Parameter("push_checkpoint", value=str(checkpoints["push"])),
+                Parameter("pull_checkpoint", value=str(checkpoints["pull"])),
+                Parameter("replay_data", value="none"), Parameter("threads", value=1)])
+    try:  # none: no replay even where a shipped pack exists
+        assert len(g.node.served["push"].explorer.replay_rows) == 0
+    finally:
+        g.close()

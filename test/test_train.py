@@ -360,3 +360,46 @@ def test_calibration_refits_only_the_similarity_head_to_the_final_correctness(da
     assert stats["rows"] == data.num_interactions
     assert stats["train_correct_rate"] == pytest.approx(correct.mean())
     assert auroc(sim, correct) > 0.6
+
+
+def test_replay_pack_samples_each_primitive_keeps_only_its_clouds_and_the_cli_writes_it(
+        tmp_path):
+    import subprocess
+    import sys
+
+    from w2e_ros.core.model import W2EModel, save_model
+    from w2e_ros.core.train import REPLAY_PACK, replay_pack
+
+    data = InteractionData.concat([
+        synthetic_data(obs_per_cat=5, per_obs=40, primitive="push"),
+        synthetic_data(obs_per_cat=5, per_obs=40, primitive="pull", seed=1)])
+    pack = replay_pack(data, "w2e", "cfw", ("push", "pull"), fraction=0.05, seed=0)
+    assert (pack.primitive == "push").sum() == 30 and (pack.primitive == "pull").sum() == 30
+    assert pack.meta[REPLAY_PACK]["of"] == [600, 600]
+    # only the clouds the sampled rows refer to, every one of them used
+    assert np.array_equal(np.unique(pack.obs_index), np.arange(pack.num_observations))
+    assert pack.num_observations < data.num_observations
+    # the rows are real training rows: same contact point, frame and label
+    key = {(tuple(np.round(p, 5)), tuple(np.round(u, 5)), bool(s)) for p, u, s in
+           zip(data.contact_points, data.up, data.success, strict=True)}
+    assert all((tuple(np.round(p, 5)), tuple(np.round(u, 5)), bool(s)) in key for p, u, s in
+               zip(pack.contact_points, pack.up, pack.success, strict=True))
+    assert len({(int(o), int(i)) for o, i in zip(pack.obs_seed[pack.obs_index],
+                                                 pack.point_index, strict=True)}) <= 60
+
+    # as typed: the same pack from the command line
+    data.save_shard(tmp_path / "train" / "shard-00000.npz")
+    model = save_model(tmp_path / "m.pt", W2EModel(SMALL), {"method": "w2e", "combo": "cfw"})
+    out = tmp_path / "pack"
+    proc = subprocess.run([sys.executable, "-m", "w2e_ros.cli", "replay-pack", "--data",
+                           str(tmp_path / "train"), "--model", str(model), "--fraction", "0.05",
+                           "--out", str(out)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert "60 interactions" in proc.stdout
+    loaded = InteractionData.load(out)
+    assert np.array_equal(loaded.success, pack.success)
+    assert loaded.meta[REPLAY_PACK]["fraction"] == 0.05
+    bad = subprocess.run([sys.executable, "-m", "w2e_ros.cli", "replay-pack", "--data",
+                          str(tmp_path / "train"), "--model", str(model), "--fraction", "0",
+                          "--out", str(out)], capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "--fraction" in bad.stderr

@@ -527,7 +527,47 @@ def _run_replay(a: argparse.Namespace) -> int:
     return replay_main(a.bag, a.rate, a.topics, a.loop, a.namespace, a.domain_id)
 
 
+def _add_replay_pack(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "replay-pack", help="the ~1 %% of training interactions fine-tuning replays, small "
+                            "enough to ship beside a checkpoint",
+        description="Sample distinct training interactions (per primitive, with only their "
+                    "clouds) into a collection directory the inference node's replay_data "
+                    "takes; it replays all of a pack.")
+    p.add_argument("--data", required=True, help="training collection (w2e collect --out)")
+    p.add_argument("--model", required=True,
+                   help="checkpoint whose method and combination pick the categories")
+    p.add_argument("--primitives", nargs="+", default=["push", "pull"])
+    p.add_argument("--fraction", type=float, default=0.01)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", required=True, help="directory (one shard is written)")
+    p.set_defaults(func=_run_replay_pack)
+
+
+def _run_replay_pack(a: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from w2e_ros.core.data import InteractionData
+    from w2e_ros.core.model import load_model
+    from w2e_ros.core.train import replay_pack
+
+    if not 0 < a.fraction <= 1:
+        raise ValueError(f"--fraction must be in (0, 1], got {a.fraction}")
+    _, meta = load_model(a.model, "cpu")
+    pack = replay_pack(InteractionData.load(a.data), str(meta.get("method", "w2e")),
+                       str(meta.get("combo", "cfw")), a.primitives, a.fraction, a.seed)
+    out = Path(a.out)
+    for old in out.glob("shard-*.npz"):
+        old.unlink()
+    path = pack.save_shard(out / "shard-00000.npz")
+    print(f"{path}: {pack.num_interactions} interactions ({', '.join(a.primitives)}, "
+          f"{pack.positive_rate():.0%} successful) on {pack.num_observations} clouds, "
+          f"{path.stat().st_size / 1e6:.1f} MB")
+    return 0
+
+
 VERBS: list[Callable[[argparse._SubParsersAction], None]] = [_add_collect, _add_train,
+                                                              _add_replay_pack,
                                                               _add_learnability,
                                                               _add_fewshot, _add_evaluate,
                                                               _add_benchmark, _add_demo,

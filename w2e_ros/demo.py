@@ -46,6 +46,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the planner's exploration rule (random: the baseline to compare with)")
     p.add_argument("--seed", type=int, default=0,
                    help="the planner's seed (candidate sampling, start states)")
+    p.add_argument("--replay-data", default="",
+                   help="training collection the inference node replays while fine-tuning "
+                        "(w2e collect --out; '': the node's default)")
     p.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID of the stack")
     p.add_argument("--quiet-nodes", action="store_true", help="hide the nodes' output")
 
@@ -104,7 +107,9 @@ def run(a: argparse.Namespace) -> int:
     domain = a.domain_id if a.domain_id is not None else pick_domain_id(5)
     env = ros_env(domain_id=domain, log_dir=out / "ros_log")
     extra = {"inference": ["-p", f"{a.primitive}_checkpoint:={ckpt.resolve()}",
-                           "-p", f"adapted_dir:={(out / 'adapted').resolve()}"],
+                           "-p", f"adapted_dir:={(out / 'adapted').resolve()}"]
+             + (["-p", f"replay_data:={Path(a.replay_data).resolve()}"] if a.replay_data
+                else []),
              "planner": ["-p", f"exploration_log_dir:={(out / 'exploration').resolve()}",
                          "-p", f"strategy:={a.strategy}", "-p", f"seed:={a.seed}"]}
     print(f"[demo] {a.category} ({a.primitive}), model {ckpt}; test {test}, explore {explore}")
@@ -128,7 +133,7 @@ def run(a: argparse.Namespace) -> int:
     summary = {
         "category": a.category, "primitive": a.primitive, "checkpoint": str(ckpt),
         "test_instances": test, "explore_instances": explore, "budget": a.budget,
-        "bar": a.bar, "strategy": a.strategy, "seed": a.seed,
+        "bar": a.bar, "strategy": a.strategy, "seed": a.seed, "replay_data": a.replay_data,
         "success_rate_before": before.success_rate, "success_rate_after": after.success_rate,
         "explore": {"ok": explored.success, "message": explored.message,
                     "interactions": explored.interactions_used,

@@ -34,3 +34,8 @@ def checkpoint_dir() -> Path:
 def default_checkpoint(primitive: str) -> Path:
     """The shipped default model (combination cfw) for a base primitive."""
     return checkpoint_dir() / f"w2e_cfw_{primitive}.pt"
+
+
+def default_replay_pack() -> Path:
+    """The shipped replay sample of the default models' training data (``w2e replay-pack``)."""
+    return checkpoint_dir() / "replay_cfw"

@@ -33,7 +33,7 @@ import logging
 import math
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -380,14 +380,21 @@ class BalancedSampler:
 def load_training_data(data_dir: str | Path, method: str, combo: str, primitive: str,
                        include_invalid: bool = True) -> InteractionData:
     """The train-split interactions of one primitive on the method's training categories."""
+    return load_training_data_from(InteractionData.load(data_dir), method, combo, primitive,
+                                   include_invalid, source=str(data_dir))
+
+
+def load_training_data_from(data: InteractionData, method: str, combo: str, primitive: str,
+                            include_invalid: bool = True, source: str = "the collection"
+                            ) -> InteractionData:
+    """:func:`load_training_data` on a collection already in memory."""
     aff, sim = method_categories(method, combo)
     cats = tuple(dict.fromkeys(aff + sim))
-    data = InteractionData.load(data_dir)
     split = load_categories().instances(cats[0], "train")
     sel = data.select(primitive=primitive, categories=cats, instances=split,
                       valid_only=not include_invalid)
     if sel.num_interactions == 0:
-        raise ValueError(f"{data_dir}: no {primitive} interactions on train instances of "
+        raise ValueError(f"{source}: no {primitive} interactions on train instances of "
                          f"{', '.join(cats)}")
     return sel
 
@@ -400,6 +407,31 @@ def replay_data(data: InteractionData, meta: dict, primitive: str) -> Interactio
     cfg = load_categories()
     train_split = cfg.instances(cats[0] if cats else cfg.categories[0], "train")
     return data.select(primitive=primitive, categories=cats or None, instances=train_split)
+
+
+REPLAY_PACK = "replay_pack"  # meta key of a collection that IS a replay sample
+
+
+def replay_pack(data: InteractionData, method: str, combo: str,
+                primitives: Sequence[str] = ("push", "pull"), fraction: float = 0.01,
+                seed: int = 0) -> InteractionData:
+    """``fraction`` of the train-split interactions of the method's training categories (per
+    primitive, distinct interactions, with only the clouds they refer to): what fine-tuning
+    replays, small enough to ship beside a checkpoint so that a stack without the training
+    collection still replays it (the reference replays ~1 %). The meta marks it as a pack,
+    so a fine-tuner replays all of it instead of ``fraction`` of it again."""
+    rng = np.random.default_rng(seed)
+    parts, totals = [], []
+    for prim in primitives:
+        sel = load_training_data_from(data, method, combo, prim)
+        n = max(1, int(round(fraction * sel.num_interactions)))
+        parts.append(sel.subset(np.sort(rng.choice(sel.num_interactions, n, replace=False))))
+        totals.append(sel.num_interactions)
+    pack = InteractionData.concat(parts)
+    pack.meta = {**data.meta, REPLAY_PACK: {
+        "method": method, "combo": combo, "primitives": list(primitives),
+        "fraction": fraction, "of": totals, "seed": seed}}
+    return pack
 
 
 class Trainer:

@@ -41,7 +41,7 @@ from w2e_ros.core.finetune import W2EExplorer
 from w2e_ros.core.model import W2EModel, default_device, load_model, save_model
 from w2e_ros.core.pointcloud import check_cloud, fps_indices
 from w2e_ros.core.primitives import BASE_PRIMITIVES, PRIMITIVES, Action
-from w2e_ros.paths import default_checkpoint
+from w2e_ros.paths import default_checkpoint, default_replay_pack
 from w2e_ros.ros.conversions import (
     action_to_interaction,
     interaction_to_action,
@@ -73,8 +73,11 @@ class InferenceSettings:
                              "written to (w2e_adapted_<primitive>.pt)")
     load_adapted: bool = param(False, "start from the adapted checkpoint in adapted_dir when "
                                "one exists (resume after a restart)")
-    replay_data: str = param("", "collection directory (w2e collect --out) replayed while "
-                             "fine-tuning ('': no replay)")
+    replay_data: str = param(
+        "", "collection replayed while fine-tuning: a w2e collect --out directory (its "
+        "replay_fraction) or a w2e replay-pack directory (all of it); '': the shipped "
+        "checkpoints/replay_cfw with the shipped checkpoints (none with others); none: no "
+        "replay")
     combo: str = param("cfw", "training combination, for the replay roles (C_aff, C_sim) "
                        "when the checkpoint does not say")
     num_directions: int = param(16, "gripper frames sampled per point for the maps", min=1,
@@ -168,6 +171,18 @@ class InferenceNode(Node):
             return adapted
         return Path(explicit).expanduser() if explicit else default_checkpoint(primitive)
 
+    def _replay_source(self, primitive: str) -> Path | None:
+        s = self.settings
+        if s.replay_data == "none":
+            return None
+        if s.replay_data:
+            return Path(s.replay_data).expanduser()
+        explicit = s.push_checkpoint if primitive == "push" else s.pull_checkpoint
+        shipped = not explicit or (Path(explicit).expanduser().resolve()
+                                   == default_checkpoint(primitive).resolve())
+        pack = default_replay_pack()
+        return pack if shipped and pack.is_dir() else None
+
     def adapted_path(self, primitive: str) -> Path:
         return Path(self.settings.adapted_dir).expanduser() / f"w2e_adapted_{primitive}.pt"
 
@@ -181,26 +196,31 @@ class InferenceNode(Node):
                 self.get_logger().error(f"no {prim} model: {exc}")
 
     def _load(self, primitive: str) -> _Served:
-        from w2e_ros.core.train import load_training_data, method_categories
+        from w2e_ros.core.data import InteractionData
+        from w2e_ros.core.train import REPLAY_PACK, load_training_data_from, method_categories
 
         s = self.settings
         path = self._checkpoint(primitive)
         model, meta = load_model(path, self.device)
         method, combo = str(meta.get("method", "w2e")), str(meta.get("combo", s.combo))
         aff_cats, sim_cats = method_categories(method, combo)
-        replay = None
-        if s.replay_data:
-            replay = load_training_data(Path(s.replay_data).expanduser(), method, combo,
-                                        primitive)
+        replay, fraction = None, s.replay_fraction
+        source = self._replay_source(primitive)
+        if source is not None:
+            data = InteractionData.load(source)
+            replay = load_training_data_from(data, method, combo, primitive, source=str(source))
+            if REPLAY_PACK in data.meta:  # already the sample: replay every row of it
+                fraction = 1.0
         cfg = ExploreConfig(finetune=s.finetune, finetune_steps=s.finetune_steps,
-                            finetune_lr=s.finetune_lr, replay_fraction=s.replay_fraction,
+                            finetune_lr=s.finetune_lr, replay_fraction=fraction,
                             seed=s.seed)
         explorer = W2EExplorer(model, cfg, replay=replay, aff_categories=aff_cats,
                              sim_categories=sim_cats, train_similarity=True, seed=s.seed)
         self.load_errors.pop(primitive, None)
         self.get_logger().info(
             f"{primitive}: {path} ({method}/{combo}, replay "
-            f"{len(explorer.replay_rows)} distinct interactions)")
+            f"{len(explorer.replay_rows)} distinct interactions"
+            f"{f' from {source}' if source else ''})")
         return _Served(primitive, path, model, meta, explorer)
 
     def _served_for(self, primitive: str) -> _Served:
