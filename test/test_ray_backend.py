@@ -163,3 +163,26 @@ def test_ray_benchmark_gives_the_same_benchmark_json_as_the_local_run(ray_sessio
     assert len(ea["similarity_s1_all"]["steps"]) == 2
     # the explored models came back from their task for the heatmaps
     assert (remote / "heatmap_push_cfw_door.png").exists()
+
+
+def _sleep_then_mark(job: tuple[str, int]) -> int:
+    import time
+
+    directory, i = job
+    time.sleep(1.0)
+    Path(directory, f"done-{i}").touch()
+    return i
+
+
+def test_leaving_a_ray_map_early_cancels_the_jobs_not_finished(ray_session, tmp_path) -> None:
+    """Ctrl-C, SIGTERM or a failure in the caller: the queued and running tasks are cancelled,
+    not left to run on the cluster (the map's ``finally``)."""
+    import contextlib
+    import time
+
+    jobs = [(str(tmp_path), i) for i in range(8)]
+    with contextlib.closing(RayBackend().map(_sleep_then_mark, jobs)) as results:
+        next(results)  # the first finished job; then the caller stops listening
+    time.sleep(4.0)  # long enough for the rest to have run, had they not been cancelled
+    marks = list(tmp_path.glob("done-*"))
+    assert 1 <= len(marks) <= 3, marks  # at most the 2 running at the time finished
