@@ -24,6 +24,7 @@ import os
 import signal
 import threading
 from collections.abc import Callable, Iterator, Sequence
+from functools import partial
 from typing import Any, TypeVar
 
 log = logging.getLogger("w2e.backends")
@@ -87,30 +88,20 @@ class LocalBackend(Backend):
             return
         ctx = mp.get_context("spawn")
         with _term_as_interrupt(), ctx.Pool(self.workers, initializer=_worker_init) as pool:
-            yield from pool.imap_unordered(_Indexed(fn), list(enumerate(jobs)))
-
-
-class _Indexed:
-    """``(i, job) -> (i, fn(job))``: a picklable wrapper so unordered results keep their
-    place."""
-
-    def __init__(self, fn: Callable[[Any], Any]) -> None:
-        self.fn = fn
-
-    def __call__(self, item: tuple[int, Any]) -> tuple[int, Any]:
-        return item[0], self.fn(item[1])
+            yield from pool.imap_unordered(partial(_call_indexed, fn), list(enumerate(jobs)))
 
 
 def _call_indexed(fn: Callable[[Any], Any], item: tuple[int, Any]) -> tuple[int, Any]:
-    """The Ray task: ``ray.remote`` takes functions, not callable objects."""
+    """``(i, job) -> (i, fn(job))``: results finishing out of order keep their place. A
+    top-level function: picklable for the pool, and ``ray.remote`` takes only functions."""
     return item[0], fn(item[1])
 
 
 class RayBackend(Backend):
     """One Ray task per job (1 CPU each). Joins the cluster at ``address`` (``"auto"``: the
     one started on this host with ``ray start``); without one, starts a private local
-    instance for the duration of each :meth:`map`. A Ray session already initialised by
-    the caller (a test, a notebook) is used as is and left running.
+    instance on first use and stops it in :meth:`close`. A Ray session already initialised
+    by the caller (a test, a notebook) is used as is and left running.
 
     Ctrl-C or SIGTERM cancels the tasks not yet finished (force: a trial in the simulator
     cannot be interrupted politely); shards already written stay, so a re-run resumes.
