@@ -119,7 +119,11 @@ class RayBackend(Backend):
         if not ray.is_initialized():
             kw: dict[str, Any] = {"include_dashboard": False, "log_to_driver": True}
             if self.address:
-                ray.init(address=self.address, **kw)
+                try:
+                    ray.init(address=self.address, **kw)
+                except ConnectionError as exc:  # a clear message instead of a trace
+                    raise ValueError(f"no Ray cluster at --address {self.address} ({exc}); "
+                                     "start one with `ray start --head`") from exc
             else:
                 ray.init(num_cpus=self.num_cpus, **kw)
             self._owned = True
