@@ -132,3 +132,42 @@ def test_w2e_bringup_respawn_restarts_a_dead_node_up_to_the_limit(tmp_path):
     assert any("node executor died (SIGKILL); not restarted: it was restarted 1 times (limit 1)"
                in x for x in lines), "\n".join(lines)
     assert "[bringup] every node has exited (respawn limit reached)" in lines
+
+
+def test_nodes_of_a_stack_whose_owner_is_killed_do_not_outlive_it(tmp_path):
+    """A ``w2e demo`` (or any script holding a Stack) killed by SIGKILL has no chance to stop
+    its nodes; they must not keep running on the domain (they did: five orphans per kill)."""
+    script = tmp_path / "owner.py"
+    script.write_text(
+        "import sys, time\n"
+        "from w2e_ros.bringup import Stack\n"
+        "from w2e_ros.ros.processes import pick_domain_id, ros_env\n"
+        "s = Stack(nodes=['executor'], env=ros_env(domain_id=pick_domain_id(23)), output=None,\n"
+        "          ready_timeout=60.0).start()\n"
+        "print(' '.join(str(p.popen.pid) for p in s.procs), flush=True)\n"
+        "time.sleep(600)\n")
+    owner = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True)
+    try:
+        line = owner.stdout.readline()
+        pids = [int(p) for p in line.split()]
+        assert pids, "the stack did not start"
+        for pid in pids:
+            os.kill(pid, 0)  # running
+        owner.kill()  # SIGKILL: no handler, no cleanup in the owner
+        owner.wait(10)
+        deadline = time.monotonic() + 15
+        alive = pids
+        while alive and time.monotonic() < deadline:
+            alive = [p for p in pids if _running(p)]
+            time.sleep(0.2)
+        assert not alive, f"nodes {alive} outlived their stack's owner"
+    finally:
+        stop_process(owner, group=False)
+
+
+def _running(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split(") ")[-1][0] != "Z"  # a zombie has exited
+    except FileNotFoundError:
+        return False

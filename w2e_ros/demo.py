@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
 import time
 from pathlib import Path
@@ -89,11 +90,19 @@ def _manipulate_each(client, category: str, instances: list[int], primitive: str
     return total
 
 
+def _interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt
+
+
 def run(a: argparse.Namespace) -> int:
     from w2e_ros.bringup import Stack
     from w2e_ros.client import W2EClient
     from w2e_ros.ros.processes import pick_domain_id, ros_env
 
+    # SIGTERM (timeout, a scheduler) stops the demo like Ctrl-C: the stack is torn down; and
+    # started in the background of a script a process inherits SIGINT ignored (POSIX)
+    signal.signal(signal.SIGTERM, _interrupt)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     cats = load_categories()
     ckpt = Path(a.checkpoint) if a.checkpoint else default_checkpoint(a.primitive)
     if not ckpt.exists():
