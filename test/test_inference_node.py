@@ -356,6 +356,7 @@ def test_a_replay_pack_is_replayed_whole_and_a_collection_by_replay_fraction(
 
     from w2e_ros.core.data import InteractionData
     from w2e_ros.core.train import replay_pack
+    from w2e_ros.paths import default_replay_pack
 
     data = InteractionData.concat([
         synthetic_data(obs_per_cat=5, per_obs=40, primitive="push"),
@@ -376,8 +377,10 @@ def test_a_replay_pack_is_replayed_whole_and_a_collection_by_replay_fraction(
             g.close()
     g = _Graph([Parameter("push_checkpoint", value=str(checkpoints["push"])),
                 Parameter("pull_checkpoint", value=str(checkpoints["pull"])),
-                Parameter("replay_data", value="none"), Parameter("threads", value=1)])
-    try:  # none: no replay even where a shipped pack exists
-        assert len(g.node.served["push"].explorer.replay_rows) == 0
+                Parameter("replay_data", value="shipped"), Parameter("threads", value=1)])
+    try:  # the pack shipped beside the default checkpoints, replayed whole
+        shipped = InteractionData.load(default_replay_pack())
+        assert len(g.node.served["push"].explorer.replay_rows) == int(
+            (shipped.primitive == "push").sum()) == 180
     finally:
         g.close()

@@ -75,9 +75,8 @@ class InferenceSettings:
                                "one exists (resume after a restart)")
     replay_data: str = param(
         "", "collection replayed while fine-tuning: a w2e collect --out directory (its "
-        "replay_fraction) or a w2e replay-pack directory (all of it); '': the shipped "
-        "checkpoints/replay_cfw with the shipped checkpoints (none with others); none: no "
-        "replay")
+        "replay_fraction), a w2e replay-pack directory (all of it), shipped (the shipped "
+        "checkpoints/replay_cfw of the shipped models); '': no replay")
     combo: str = param("cfw", "training combination, for the replay roles (C_aff, C_sim) "
                        "when the checkpoint does not say")
     num_directions: int = param(16, "gripper frames sampled per point for the maps", min=1,
@@ -171,17 +170,11 @@ class InferenceNode(Node):
             return adapted
         return Path(explicit).expanduser() if explicit else default_checkpoint(primitive)
 
-    def _replay_source(self, primitive: str) -> Path | None:
+    def _replay_source(self) -> Path | None:
         s = self.settings
-        if s.replay_data == "none":
-            return None
-        if s.replay_data:
-            return Path(s.replay_data).expanduser()
-        explicit = s.push_checkpoint if primitive == "push" else s.pull_checkpoint
-        shipped = not explicit or (Path(explicit).expanduser().resolve()
-                                   == default_checkpoint(primitive).resolve())
-        pack = default_replay_pack()
-        return pack if shipped and pack.is_dir() else None
+        if s.replay_data == "shipped":
+            return default_replay_pack()
+        return Path(s.replay_data).expanduser() if s.replay_data else None
 
     def adapted_path(self, primitive: str) -> Path:
         return Path(self.settings.adapted_dir).expanduser() / f"w2e_adapted_{primitive}.pt"
@@ -205,7 +198,7 @@ class InferenceNode(Node):
         method, combo = str(meta.get("method", "w2e")), str(meta.get("combo", s.combo))
         aff_cats, sim_cats = method_categories(method, combo)
         replay, fraction = None, s.replay_fraction
-        source = self._replay_source(primitive)
+        source = self._replay_source()
         if source is not None:
             data = InteractionData.load(source)
             replay = load_training_data_from(data, method, combo, primitive, source=str(source))
