@@ -25,29 +25,15 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from arm_reach import ranked  # a sibling script: the same candidate ranking
 
 from sim_bridge.panda import base_in_front, run_arm_trial
 from w2e_ros.core import kinematics as kin
-from w2e_ros.core.actions import encode_rotation, sample_forward, sample_up
 from w2e_ros.core.evaluate import evaluation_targets
 from w2e_ros.core.model import load_model
 from w2e_ros.core.primitives import Action
 from w2e_ros.core.sim_world import SimWorld, stable_seed
 from w2e_ros.paths import default_checkpoint
-
-
-@torch.no_grad()
-def ranked(model, cloud, directions: int, seed: int):
-    """Candidates (points, up, forward) of the whole map, best affordance first."""
-    rng = np.random.default_rng(seed)
-    pidx = np.repeat(np.arange(len(cloud.points)), directions)
-    up = sample_up(cloud.normals[pidx], rng)
-    fwd = sample_forward(up, rng)
-    feats = model.encode(torch.from_numpy(cloud.points[None]))[0]
-    logit, _ = model.heads(feats[torch.from_numpy(pidx.astype(np.int64))],
-                           torch.from_numpy(encode_rotation(up, fwd)))
-    order = np.argsort(-torch.sigmoid(logit).numpy(), kind="stable")
-    return cloud.points[pidx[order]].astype(np.float64), up[order], fwd[order]
 
 
 def bootstrap(diff: np.ndarray, seed: int = 0, n: int = 2000) -> tuple[float, float]:
