@@ -8,6 +8,9 @@ teach. Rules: random, similarity (least familiar), nosim (least certain), top af
 the least familiar predicted failure (sim argmin among affordance <= 0.5). With
 ``--collection``, also the same rules ranked over a whole collection's rows (pooled over its
 objects, the tenth each rule ranks first), which is where the last rule looked promising.
+With ``--familiarity``, the mean similarity of the first round's candidates per object,
+averaged per category, for every novel category: what the paper's bar and an object-level
+rule would act on.
 
     .venv/bin/python bench/first_picks.py --model runs/w2e_cfw_pull/model.pt --primitive pull \
         --categories bucket kitchen_pot kettle box trashcan --collection data/valset/novel_cfw \
@@ -59,6 +62,28 @@ def pooled_table(model, collection: str, categories: list[str], primitive: str,
     return out
 
 
+def familiarity_table(scorer: W2EExplorer, world: SimWorld, objects: int, seed: int,
+                      combo: str) -> list[str]:
+    """Mean similarity of each novel category's first-round candidates (object means)."""
+    from w2e_ros.core.categories import load_categories
+
+    cfg, rng = ExploreConfig(), np.random.default_rng(seed)
+    rows = []
+    for cat in load_categories().novel(combo):
+        means = []
+        for t in explore_targets([cat], objects):
+            cloud = world.observe(t)
+            cand = sample_candidates(cloud, cfg.points_per_object, cfg.dirs_per_point, rng,
+                                     cloud.movable)
+            means.append(float(scorer.score([cloud], [cand])[0].similarity.mean()))
+        rows.append((float(np.mean(means)), cat, min(means), max(means)))
+    out = ["Mean similarity of the first round's candidates (per object, then per category; "
+           f"{objects} explore objects each), least familiar first.", "",
+           "| category | mean similarity | object min | object max |", "|---|---|---|---|"]
+    out += [f"| {c} | {m:.3f} | {lo:.3f} | {hi:.3f} |" for m, c, lo, hi in sorted(rows)]
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", default="runs/w2e_cfw_pull/model.pt")
@@ -70,6 +95,8 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--collection", default=None,
                     help="also rank a collection's rows (w2e collect) pooled over its objects")
+    ap.add_argument("--familiarity", action="store_true",
+                    help="also the mean candidate similarity of every novel category")
     ap.add_argument("--out", default="bench/results/first_picks")
     a = ap.parse_args()
     torch.set_num_threads(1)
@@ -112,6 +139,9 @@ def main() -> None:
                      f"{np.mean([r['similarity'] for r in sel]):.2f} |")
     if a.collection:
         lines += ["", *pooled_table(model, a.collection, a.categories, a.primitive, a.seed)]
+    if a.familiarity:
+        lines += ["", *familiarity_table(scorer, world, a.objects, a.seed, str(
+            meta.get("combo", "cfw")))]
     (out / "first_picks.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
