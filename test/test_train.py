@@ -403,3 +403,40 @@ def test_replay_pack_samples_each_primitive_keeps_only_its_clouds_and_the_cli_wr
                           str(tmp_path / "train"), "--model", str(model), "--fraction", "0",
                           "--out", str(out)], capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "--fraction" in bad.stderr
+
+
+def test_w2e_calibrate_balanced_lowers_the_similarity_where_successes_are_missed(tmp_path):
+    """A head that predicts "fails" everywhere is right on every failure: calibrated on the
+    data's prior it calls everything familiar; weighting successes and failures equally
+    (--balanced) makes the geometry of the missed successes unfamiliar."""
+    import subprocess
+    import sys
+
+    from w2e_ros.core.model import W2EModel, load_model, save_model
+
+    data = synthetic_data(obs_per_cat=6, per_obs=48, primitive="pull", seed=4)
+    assert 0.05 < data.success.mean() < 0.4
+    data.save_shard(tmp_path / "train" / "shard-00000.npz")
+    torch.manual_seed(0)
+    model = W2EModel(SMALL)
+    with torch.no_grad():  # the affordance head says "fails" everywhere
+        model.aff_head.out.bias.fill_(-20.0)
+    src = save_model(tmp_path / "m.pt", model, {"method": "w2e", "combo": "cfw",
+                                                "primitive": "pull"})
+    sims = {}
+    for name, flag in (("natural", []), ("balanced", ["--balanced"])):
+        out = tmp_path / f"{name}.pt"
+        proc = subprocess.run(
+            [sys.executable, "-m", "w2e_ros.cli", "calibrate", "--model", str(src), "--data",
+             str(tmp_path / "train"), "--out", str(out), "--steps", "300", "--threads", "1",
+             *flag], capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr
+        calibrated, meta = load_model(out, "cpu")
+        assert meta["calibration"]["balanced"] == float(bool(flag))
+        _, sims[name] = predict_interactions(calibrated, data, cache=None)
+    pos = data.success
+    # natural: familiar everywhere (the head is right on the ~80 % that fail)
+    assert sims["natural"].mean() > 0.6
+    # balanced: the successes' geometry is clearly less familiar than the failures'
+    assert sims["balanced"][pos].mean() < sims["natural"][pos].mean() - 0.1
+    assert auroc(1 - sims["balanced"], pos) > 0.6

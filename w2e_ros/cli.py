@@ -128,6 +128,9 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
                    help="steps re-fitting the similarity head to the final affordance head's "
                         "correctness (0: keep the jointly trained head); a --resume of a "
                         "finished run only re-runs this")
+    p.add_argument("--balanced-similarity", action="store_true",
+                   help="calibrate the similarity with successes and failures weighted "
+                        "equally (see w2e calibrate)")
     p.add_argument("--patience", type=int, default=6)
     p.add_argument("--resume", action="store_true", help="continue the run in --out")
     p.add_argument("--seed", type=int, default=0)
@@ -152,7 +155,8 @@ def _run_train(a: argparse.Namespace) -> int:
                       clouds_per_batch=a.clouds, interactions_per_cloud=a.per_cloud,
                       seed=a.seed, threads=a.threads, log_every=a.log_every,
                       ckpt_every=a.ckpt_every, val_every=a.val_every, patience=a.patience,
-                      calibrate_steps=a.calibrate_steps)
+                      calibrate_steps=a.calibrate_steps,
+                      calibrate_balanced=a.balanced_similarity)
     if a.steps is not None:
         cfg.steps = a.steps
     elif a.epochs is not None:
@@ -527,6 +531,49 @@ def _run_replay(a: argparse.Namespace) -> int:
     return replay_main(a.bag, a.rate, a.topics, a.loop, a.namespace, a.domain_id)
 
 
+def _add_calibrate(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "calibrate", help="re-fit a trained model's similarity head to its affordance head's "
+                          "correctness (about a minute)",
+        description="Fit the similarity head anew on the training interactions of the model's "
+                    "similarity categories: target = the affordance head is right. With "
+                    "--balanced successes and failures weigh half each, so 'predicts fail "
+                    "and is right because most actions fail' no longer reads as familiar.")
+    p.add_argument("--model", required=True, help="checkpoint to calibrate")
+    p.add_argument("--data", required=True, help="its training collection (w2e collect --out)")
+    p.add_argument("--out", required=True, help="where to write the calibrated checkpoint")
+    p.add_argument("--balanced", action="store_true")
+    p.add_argument("--steps", type=int, default=2000)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=2)
+    p.set_defaults(func=_run_calibrate)
+
+
+def _run_calibrate(a: argparse.Namespace) -> int:
+    import json
+
+    import torch
+
+    from w2e_ros.core.model import load_model, save_model
+    from w2e_ros.core.train import calibrate_similarity, load_training_data, method_categories
+
+    torch.set_num_threads(a.threads)
+    model, meta = load_model(a.model)
+    method, combo = str(meta.get("method", "w2e")), str(meta.get("combo", "cfw"))
+    _, sim_cats = method_categories(method, combo)
+    if not sim_cats:
+        raise ValueError(f"{a.model}: a {method} model has no similarity categories")
+    primitive = meta.get("primitive")
+    if not primitive:
+        raise ValueError(f"{a.model} does not name its primitive (not a w2e train checkpoint)")
+    data = load_training_data(a.data, method, combo, primitive)
+    stats = calibrate_similarity(model, data, sim_cats, a.steps, a.seed, balanced=a.balanced)
+    stats["balanced"] = float(a.balanced)
+    path = save_model(a.out, model, {**meta, "calibration": stats})
+    print(f"{path}: {json.dumps({k: round(v, 4) for k, v in stats.items()})}")
+    return 0
+
+
 def _add_replay_pack(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "replay-pack", help="the ~1 %% of training interactions fine-tuning replays, small "
@@ -567,6 +614,7 @@ def _run_replay_pack(a: argparse.Namespace) -> int:
 
 
 VERBS: list[Callable[[argparse._SubParsersAction], None]] = [_add_collect, _add_train,
+                                                              _add_calibrate,
                                                               _add_replay_pack,
                                                               _add_learnability,
                                                               _add_fewshot, _add_evaluate,
@@ -587,7 +635,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 # verbs that train or run the network: glibc's default allocator makes their big, short-lived
 # tensors page-fault constantly; huge pages made batch training 2-2.7x faster (DESIGN §6)
-_TENSOR_VERBS = {"train", "fewshot", "evaluate", "benchmark", "demo", "learnability"}
+_TENSOR_VERBS = {"train", "calibrate", "fewshot", "evaluate", "benchmark", "demo",
+                 "learnability"}
 
 
 def _reexec_with_hugepages(argv: list[str]) -> None:

@@ -82,6 +82,7 @@ class TrainConfig:
     val_every: int = 250  # steps between validations (with --val-data)
     patience: int = 6  # validations without a better score before the run stops
     calibrate_steps: int = 2000  # similarity head re-fitted to the final head's correctness
+    calibrate_balanced: bool = False  # ... with successes and failures weighted equally
     threads: int = 2
 
 

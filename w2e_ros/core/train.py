@@ -654,7 +654,7 @@ def train(cfg: TrainConfig, data_dir: str | Path, out_dir: str | Path, resume: b
         model, meta = load_model(run_dir / "model.pt", trainer.device)
         before = validator.run(model) if validator is not None else {}
         stats = calibrate_similarity(model, data, trainer.sim_cats, cfg.calibrate_steps,
-                                     cfg.seed)
+                                     cfg.seed, balanced=cfg.calibrate_balanced)
         after = validator.run(model) if validator is not None else {}
         for k in ("csim_simcorr_auroc", "novel_simcorr_auroc", "novel_sim_mean",
                   "novel_confidence_simcorr_auroc"):
@@ -668,8 +668,8 @@ def train(cfg: TrainConfig, data_dir: str | Path, out_dir: str | Path, resume: b
 
 
 def calibrate_similarity(model: W2EModel, data: InteractionData, sim_cats: tuple[str, ...],
-                         steps: int = 2000, seed: int = 0, batch: int = 512
-                         ) -> dict[str, float]:
+                         steps: int = 2000, seed: int = 0, batch: int = 512,
+                         balanced: bool = False) -> dict[str, float]:
     """Re-fit the similarity head to predict whether the FINAL affordance head is right.
 
     Measured (README, issue 8): the jointly trained head, whose target is the running
@@ -678,6 +678,11 @@ def calibrate_similarity(model: W2EModel, data: InteractionData, sim_cats: tuple
     it at 0.66. The encoder and the affordance head stay as they are; the target is the hard
     correct / wrong label with unweighted BCE, so the similarity stays an estimate of the
     probability of being right and the 0.9 bar keeps its meaning.
+
+    ``balanced``: batches draw successes and failures half and half, so the similarity is
+    the probability of being right under a 50/50 prior, not the data's: on a pull (7 % of
+    training pulls succeed) "predict fail" is right almost everywhere and the plain head
+    calls exactly the geometry where successes are missed familiar.
     """
     from w2e_ros.core.predict import FEATURES, encoder_key
 
@@ -703,8 +708,16 @@ def calibrate_similarity(model: W2EModel, data: InteractionData, sim_cats: tuple
                 layer.bias.zero_()
     opt = torch.optim.Adam(head.parameters(), lr=1e-3)
     head.train()
+    pos = torch.from_numpy(np.flatnonzero(sel.success)).to(dev)
+    neg = torch.from_numpy(np.flatnonzero(~sel.success)).to(dev)
+    balanced = balanced and len(pos) > 0 and len(neg) > 0
     for _ in range(steps):
-        i = torch.randint(len(y), (batch,), generator=gen).to(dev)
+        if balanced:
+            h = batch // 2
+            i = torch.cat([pos[torch.randint(len(pos), (h,), generator=gen).to(dev)],
+                           neg[torch.randint(len(neg), (batch - h,), generator=gen).to(dev)]])
+        else:
+            i = torch.randint(len(y), (batch,), generator=gen).to(dev)
         loss = F.binary_cross_entropy_with_logits(head(f[i], a[i]), y[i])
         opt.zero_grad(set_to_none=True)
         loss.backward()
