@@ -178,3 +178,35 @@ def test_only_failures_and_no_replay_leave_the_affordance_head_alone(novel):
     assert any(not torch.equal(v, sim0[k]) for k, v in exp.model.sim_head.state_dict().items())
     exp.add_data(novel, np.flatnonzero(novel.success)[:2])  # one success: now it may learn
     assert exp.fit()["affordance_trained"] == 1.0
+
+
+def test_a_balanced_similarity_stays_balanced_while_fine_tuning(novel):
+    """A model calibrated with successes and failures weighted equally (w2e calibrate
+    --balanced) keeps that weighting when it learns from explored interactions: otherwise
+    the first fit, on mostly failures the head gets right, makes everything familiar again.
+    The similarity loss is then the class-balanced BCE to the correctness target."""
+    import torch.nn.functional as F
+
+    from w2e_ros.core.train import RunningAccuracy
+
+    rows = np.concatenate([np.flatnonzero(novel.success)[:2],
+                           np.flatnonzero(~novel.success)[:18]])
+    losses = {}
+    for balanced in (False, True):
+        torch.manual_seed(0)
+        exp = W2EExplorer(W2EModel(SMALL), ExploreConfig(), None, ("cabinet",), SIM, seed=0,
+                          features=FeatureCache(), balanced_similarity=balanced)
+        exp.add_data(novel, rows)
+        r = exp.explored
+        f = exp._row_features(r, grad=False)
+        a = torch.from_numpy(r.action)
+        with torch.no_grad():
+            logit = exp.model.aff_head(f, a)
+            losses[balanced] = float(exp._similarity_loss(r, f, logit, 1.0, RunningAccuracy()))
+            right = ((logit.numpy() > 0) == r.success).astype(np.float32)  # first sight: 0 / 1
+            sim_logit = exp.model.sim_head(f, a)
+        weight = torch.from_numpy(balanced_weights(r.success)) if balanced else None
+        expected = F.binary_cross_entropy_with_logits(sim_logit, torch.from_numpy(right),
+                                                      weight=weight)
+        assert losses[balanced] == pytest.approx(float(expected), rel=1e-5)
+    assert losses[True] != pytest.approx(losses[False], rel=1e-3)

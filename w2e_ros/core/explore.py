@@ -33,7 +33,7 @@ from w2e_ros.core.feasibility import (
     approach_clear,
     arm_reachable,
 )
-from w2e_ros.core.finetune import W2EExplorer
+from w2e_ros.core.finetune import W2EExplorer, similarity_is_balanced
 from w2e_ros.core.model import W2EModel
 from w2e_ros.core.primitives import Action, TrialResult
 from w2e_ros.core.proposals import DEFAULT_PROPOSAL, ProposalConfig, Proposer
@@ -346,6 +346,7 @@ def fewshot(model: W2EModel, meta: dict, world: ExplorationWorld, categories: Se
         m = copy.deepcopy(model)
         m.load_state_dict(initial)
         explorer = W2EExplorer(m, cfg, replay, aff, sim, train_similarity=bool(sim),
+                               balanced_similarity=similarity_is_balanced(meta),
                                seed=cfg.seed)
         targets = explore_targets(cats, per_category)
         log.info("few-shot %s on %s (%d objects), %s, budget %d per object (%d in all)",

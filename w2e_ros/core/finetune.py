@@ -78,6 +78,11 @@ class Rows:
         return self.cat(flipped)
 
 
+def similarity_is_balanced(meta: dict) -> bool:
+    """Whether a checkpoint's similarity was calibrated class-balanced (w2e calibrate)."""
+    return bool((meta.get("calibration") or {}).get("balanced", False))
+
+
 def balanced_weights(success: np.ndarray) -> np.ndarray:
     """Weights that give positives and negatives equal total weight (mean 1)."""
     n, n_pos = len(success), int(np.sum(success))
@@ -95,7 +100,8 @@ class W2EExplorer:
     def __init__(self, model: W2EModel, cfg: ExploreConfig, replay: InteractionData | None = None,
                  aff_categories: Sequence[str] = (), sim_categories: Sequence[str] = (),
                  train_similarity: bool = True, seed: int = 0,
-                 features: FeatureCache | None = None) -> None:
+                 features: FeatureCache | None = None,
+                 balanced_similarity: bool = False) -> None:
         if cfg.finetune not in ("heads", "all"):
             raise ValueError(f"unknown finetune mode {cfg.finetune!r} (heads | all)")
         self.model, self.cfg = model, cfg
@@ -116,6 +122,9 @@ class W2EExplorer:
         self._train_affordance = True
         self.aff_cats, self.sim_cats = tuple(aff_categories), tuple(sim_categories)
         self.train_similarity = train_similarity
+        # the similarity keeps the definition its calibration gave it: with a class-balanced
+        # calibration (w2e calibrate --balanced) successes and failures weigh half each here
+        self.balanced_similarity = balanced_similarity
         self.features = features or FEATURES
         self._enc = encoder_key(model) if self.heads_only else ""
         self.clouds: list[np.ndarray] = []  # (N, 3) each
@@ -279,8 +288,10 @@ class W2EExplorer:
                                  device=self.device)
         m = torch.from_numpy(r.sim).to(self.device)
         a = torch.from_numpy(r.action).to(self.device)[m]
+        wt = (torch.from_numpy(balanced_weights(r.success[r.sim])).to(self.device)
+              if self.balanced_similarity else None)
         return w * F.binary_cross_entropy_with_logits(self.model.sim_head(f[m].detach(), a),
-                                                      target)
+                                                      target, weight=wt)
 
     def _anchor_loss(self) -> torch.Tensor:
         if not self._anchor:

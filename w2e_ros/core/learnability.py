@@ -24,7 +24,7 @@ from w2e_ros.core.categories import load_categories
 from w2e_ros.core.config import ExploreConfig
 from w2e_ros.core.data import InteractionData
 from w2e_ros.core.evaluate import evaluation_instances
-from w2e_ros.core.finetune import W2EExplorer
+from w2e_ros.core.finetune import W2EExplorer, similarity_is_balanced
 from w2e_ros.core.metrics import auroc, classification_metrics
 from w2e_ros.core.model import load_model
 from w2e_ros.core.predict import predict_interactions
@@ -122,7 +122,7 @@ def run_learnability(cfg: LearnabilityConfig) -> dict:
             explorer = W2EExplorer(m, ecfg, replay, meta.get("aff_categories", ()),
                                    meta.get("sim_categories", ()),
                                    train_similarity=bool(meta.get("sim_categories")),
-                                   seed=seed)
+                                   seed=seed, balanced_similarity=similarity_is_balanced(meta))
             explorer.add_data(pool, np.sort(rows_sel))
             fit = explorer.fit()
             aff, sim = predict_interactions(m, test)

@@ -37,7 +37,7 @@ from w2e_msgs.srv import PredictMaps, UpdateModel
 from w2e_ros.core.actions import sample_forward, sample_up
 from w2e_ros.core.config import ExploreConfig
 from w2e_ros.core.explore import Candidates, Executed
-from w2e_ros.core.finetune import W2EExplorer
+from w2e_ros.core.finetune import W2EExplorer, similarity_is_balanced
 from w2e_ros.core.model import W2EModel, default_device, load_model, save_model
 from w2e_ros.core.pointcloud import check_cloud, fps_indices
 from w2e_ros.core.primitives import BASE_PRIMITIVES, PRIMITIVES, Action
@@ -208,7 +208,8 @@ class InferenceNode(Node):
                             finetune_lr=s.finetune_lr, replay_fraction=fraction,
                             seed=s.seed)
         explorer = W2EExplorer(model, cfg, replay=replay, aff_categories=aff_cats,
-                             sim_categories=sim_cats, train_similarity=True, seed=s.seed)
+                               sim_categories=sim_cats, train_similarity=True, seed=s.seed,
+                               balanced_similarity=similarity_is_balanced(meta))
         self.load_errors.pop(primitive, None)
         self.get_logger().info(
             f"{primitive}: {path} ({method}/{combo}, replay "
