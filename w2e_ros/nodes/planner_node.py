@@ -449,8 +449,11 @@ class PlannerNode(Node):
             bad = [int(i) for i in instances if not lo <= int(i) < hi]
             if bad:
                 raise ValueError(f"instances {bad} out of range [{lo}, {hi})")
-            newer = self.get_clock().now()
             ids += self.load_scene(category, instances)
+            # frames stamped after the load answered show the new scene (the bridge stamps a
+            # frame when it reads the scene); a stamp taken before the call let a frame of the
+            # old scene count as fresh, and the new objects "were not seen" (CI, once)
+            newer = self.get_clock().now()
         if not ids:
             found = self.wait_for_objects(None, None, self.settings.observe_timeout_s)
             ids = sorted(found)
