@@ -24,7 +24,7 @@ from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, ros_env  # 
 pytestmark = pytest.mark.slow
 clean_shm_at_exit()
 
-OBSERVE_TIMEOUT_S = 6.0  # how long the first explore runs: it waits for objects that never come
+OBSERVE_TIMEOUT_S = 12.0  # how long the first explore runs: it waits for objects that never come
 
 # A user's client: waits for the service, says "ready", sends one request when told "go" on
 # stdin, says "sent", then prints the answer and how long it took as one JSON line.
@@ -103,7 +103,7 @@ def test_a_second_request_while_explore_runs_answers_busy_at_once(tmp_path):
                 got = _answer(proc, 60)
                 assert got["answered"], f"second {verb}: no answer while explore ran"
                 assert got["success"] is False and "busy" in got["message"], got
-                assert got["seconds"] < 3.0, f"second {verb}: 'busy' only after the wait: {got}"
+                assert got["seconds"] < 6.0, f"second {verb}: 'busy' only after the wait: {got}"
             done = _answer(first, 60)
             # the first one ran to its end: no objects seen, a real answer, not "busy"
             assert done["answered"] and done["success"] is False, done
