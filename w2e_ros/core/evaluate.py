@@ -17,9 +17,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from w2e_ros.core.actions import encode_rotation, sample_forward, sample_up
+from w2e_ros.core.actions import encode_rotation
 from w2e_ros.core.data import InteractionData
-from w2e_ros.core.explore import Candidates, sample_candidates
+from w2e_ros.core.explore import Candidates, map_candidates, sample_candidates
 from w2e_ros.core.metrics import affordance_fscore_from_probs, success_rate
 from w2e_ros.core.model import W2EModel
 from w2e_ros.core.predict import FEATURES, encoder_key, predict_interactions
@@ -46,17 +46,6 @@ def fscore_by_category(model: W2EModel, data: InteractionData) -> dict[str, dict
 
 
 PROBE_SAMPLERS = ("proposal", "maps")
-
-
-def map_candidates(cloud: Any, dirs_per_point: int, rng: np.random.Generator,
-                   mask: np.ndarray | None = None) -> Candidates:
-    """Every point (of ``mask`` when it marks any) x ``dirs_per_point`` frames uniform over
-    the hemisphere facing into the surface, as the inference node's maps are sampled."""
-    pts = np.flatnonzero(mask) if mask is not None and np.any(mask) else np.arange(
-        len(cloud.points))
-    pidx = np.repeat(pts, dirs_per_point)
-    up = sample_up(np.asarray(cloud.normals)[pidx], rng)
-    return Candidates(pidx, up, sample_forward(up, rng))
 
 
 @dataclass

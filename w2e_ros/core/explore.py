@@ -23,6 +23,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from w2e_ros.core.actions import sample_forward, sample_up
 from w2e_ros.core.config import ExploreConfig
 from w2e_ros.core.data import InteractionData
 from w2e_ros.core.feasibility import (
@@ -73,6 +74,18 @@ def sample_candidates(cloud: CloudLike, num_points: int, dirs_per_point: int,
     p = Proposer(cloud.points, cloud.normals, mask if mask is not None and np.any(mask)
                  else None, proposal).sample(num_points, dirs_per_point, rng)
     return Candidates(p.point_index, p.up, p.forward)
+
+
+def map_candidates(cloud: CloudLike, dirs_per_point: int, rng: np.random.Generator,
+                   mask: np.ndarray | None = None) -> Candidates:
+    """Every point (of ``mask`` when it marks any) x ``dirs_per_point`` frames uniform over
+    the hemisphere facing into the surface: the inference node's maps, and the benchmark's
+    --probe maps, so both judge the same candidate set."""
+    pts = np.flatnonzero(mask) if mask is not None and np.any(mask) else np.arange(
+        len(cloud.points))
+    pidx = np.repeat(pts, dirs_per_point)
+    up = sample_up(np.asarray(cloud.normals)[pidx], rng)
+    return Candidates(pidx, up, sample_forward(up, rng))
 
 
 def clear_candidates(cloud: CloudLike, cands: Candidates, primitive: str,

@@ -34,9 +34,8 @@ from std_srvs.srv import Trigger
 from w2e_msgs.msg import AffordanceMap, Interaction
 from w2e_msgs.srv import PredictMaps, UpdateModel
 
-from w2e_ros.core.actions import sample_forward, sample_up
 from w2e_ros.core.config import ExploreConfig
-from w2e_ros.core.explore import Candidates, Executed
+from w2e_ros.core.explore import Candidates, Executed, map_candidates
 from w2e_ros.core.finetune import W2EExplorer, similarity_is_balanced
 from w2e_ros.core.model import W2EModel, default_device, load_model, save_model
 from w2e_ros.core.pointcloud import check_cloud, fps_indices
@@ -308,16 +307,14 @@ class InferenceNode(Node):
              msg: PointCloud2) -> AffordanceMap:
         """All points x k sampled frames -> per-point maps and the extreme actions."""
         n = len(cloud.points)
-        pidx = np.repeat(np.arange(n), k)  # point-major (n * k,)
-        up = sample_up(cloud.normals[pidx], rng)
-        fwd = sample_forward(up, rng)
+        cand = map_candidates(cloud, k, rng)  # point-major (n * k,)
+        pidx, up, fwd = cand.point_index, cand.up, cand.forward
         acts = torch.from_numpy(np.concatenate([up, fwd], axis=1).reshape(n, k, 6))
         logit, sim = model.score_map(feats[None], acts[None].to(model.device))
         aff = torch.sigmoid(logit)[0].reshape(-1).cpu().numpy()  # (n * k,)
         sim = sim[0].reshape(-1).cpu().numpy()
         point_aff = aff.reshape(n, k).max(axis=1)
         point_sim = sim.reshape(n, k).mean(axis=1)
-        cand = Candidates(pidx, up, fwd)
 
         def actions(order: np.ndarray) -> list[Interaction]:
             return [action_to_interaction(cand.action(cloud, int(i), primitive), object_id)
