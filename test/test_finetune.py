@@ -69,7 +69,7 @@ def test_flipped_copies_reverse_the_approach_and_fail():
     np.testing.assert_array_equal(both.key[2:], rows.key)  # one counter per interaction
 
 
-@pytest.mark.parametrize("mode", ["heads", "all"])
+@pytest.mark.parametrize("mode", ["heads", "decoder", "all"])
 def test_fit_learns_the_explored_set(novel, mode):
     exp = _explorer(mode)
     exp.add_data(novel)
@@ -82,8 +82,24 @@ def test_fit_learns_the_explored_set(novel, mode):
     assert after["fit_loss"] < 0.7 * before["fit_loss"]
     assert after["fit_auroc"] > max(before["fit_auroc"], 0.85)
     assert after["fit_acc"] > before["fit_acc"]
-    same = all(torch.equal(enc[k], v) for k, v in exp.model.encoder.state_dict().items())
-    assert same == (mode == "heads")  # heads mode never changes the encoder
+    changed = {k.split(".")[0] for k, v in exp.model.encoder.state_dict().items()
+               if not torch.equal(enc[k], v)}
+    # heads: the encoder as trained; decoder: only its feature propagation; all: everything
+    assert changed == {"heads": set(), "decoder": {"fp", "out"}, "all": {"sa", "fp", "out"}}[mode]
+
+
+def test_decoder_features_from_cached_levels_equal_a_fresh_encoder_pass(novel):
+    """The decoder mode's features (cached set-abstraction levels, propagated) are the
+    encoder's, before and after a fit changes the propagation layers."""
+    exp = _explorer("decoder")
+    clouds = [novel.points[o] for o in range(3)]
+    for _ in range(2):
+        cached = torch.stack(exp.cloud_features(clouds))
+        with torch.no_grad():
+            fresh = exp.model.encode(torch.from_numpy(np.stack(clouds)))
+        torch.testing.assert_close(cached, fresh, rtol=1e-5, atol=1e-5)
+        exp.add_data(novel)
+        exp.fit()
 
 
 def test_fit_stops_when_the_explored_loss_levels_off(novel):

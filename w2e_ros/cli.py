@@ -15,6 +15,7 @@ import sys
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
+from w2e_ros.core.config import FINETUNE_MODES
 from w2e_ros.core.strategies import STRATEGIES
 
 if TYPE_CHECKING:
@@ -179,18 +180,19 @@ def _add_explore_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dirs", type=int, default=8, help="candidate actions per point")
     p.add_argument("--round-size", type=int, default=0,
                    help="interactions per round between model updates (0: objects / 2)")
-    p.add_argument("--finetune", default="heads", choices=["heads", "all"],
-                   help="fine-tune the heads on cached features (encoder frozen) or every "
-                        "weight")
+    p.add_argument("--finetune", default="heads", choices=list(FINETUNE_MODES),
+                   help="heads: the heads on cached features (encoder frozen); decoder: also "
+                        "the encoder's feature propagation, on cached set-abstraction levels; "
+                        "all: every weight")
     p.add_argument("--finetune-steps", type=int, default=500,
                    help="most gradient steps per update (stops when the explored-set fit "
                         "levels off)")
     p.add_argument("--finetune-lr", type=float, default=1e-3, help="fine-tuning learning rate")
     p.add_argument("--finetune-clouds", type=int, default=4,
-                   help="with --finetune all: explored clouds encoded per step")
+                   help="with --finetune decoder | all: explored clouds per step")
     p.add_argument("--encoder-lr-scale", type=float, default=1.0,
-                   help="with --finetune all: the encoder's learning rate relative to the "
-                        "heads'")
+                   help="with --finetune decoder | all: the encoder's learning rate relative "
+                        "to the heads'")
     p.add_argument("--anchor", type=float, default=0.1,
                    help="L2-SP weight pulling the fine-tuned heads towards the trained ones "
                         "(0: off); without it a few interactions made the model worse")

@@ -86,6 +86,11 @@ class TrainConfig:
     threads: int = 2
 
 
+FINETUNE_MODES = ("heads", "decoder", "all")
+"""What few-shot fine-tuning trains: the heads on cached features | also the encoder's
+feature propagation, on cached set-abstraction levels | every weight."""
+
+
 @dataclass
 class ExploreConfig:
     """Few-shot exploration (paper §3.3 and supplementary; the reference code, DESIGN §8)."""

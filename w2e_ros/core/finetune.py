@@ -10,8 +10,11 @@ accuracy) is counted with the affordance head just updated (the reference's orde
 
 ``finetune="heads"`` (default) freezes the encoder: every cloud's features are computed once
 and cached, so a fit of hundreds of steps costs milliseconds and the benchmark runs on a CPU.
-``finetune="all"`` trains every weight (the reference), encoding the sampled clouds at every
-step; ``w2e learnability`` compares the two.
+``finetune="decoder"`` also trains the encoder's feature-propagation layers: the
+set-abstraction levels (all of the geometry, the bulk of the encoder's cost) are computed once
+per cloud and cached, and each step propagates the sampled clouds' cached levels back to their
+points. ``finetune="all"`` trains every weight (the reference), encoding the sampled clouds at
+every step; ``w2e learnability`` compares the three.
 """
 
 from __future__ import annotations
@@ -28,7 +31,7 @@ import torch
 import torch.nn.functional as F
 
 from w2e_ros.core.actions import encode_rotation
-from w2e_ros.core.config import ExploreConfig
+from w2e_ros.core.config import FINETUNE_MODES, ExploreConfig
 from w2e_ros.core.data import InteractionData
 from w2e_ros.core.metrics import auroc
 from w2e_ros.core.model import W2EModel
@@ -102,18 +105,22 @@ class W2EExplorer:
                  train_similarity: bool = True, seed: int = 0,
                  features: FeatureCache | None = None,
                  balanced_similarity: bool = False) -> None:
-        if cfg.finetune not in ("heads", "all"):
-            raise ValueError(f"unknown finetune mode {cfg.finetune!r} (heads | all)")
+        if cfg.finetune not in FINETUNE_MODES:
+            raise ValueError(f"unknown finetune mode {cfg.finetune!r} "
+                             f"({' | '.join(FINETUNE_MODES)})")
         self.model, self.cfg = model, cfg
         self.device = model.device
         make_deterministic(seed)
         self.rng = np.random.default_rng(seed)
+        self.mode = cfg.finetune
         self.heads_only = cfg.finetune == "heads"
         heads = [p for n, p in model.named_parameters() if not n.startswith("encoder.")]
         groups = [{"params": heads, "lr": cfg.finetune_lr}]
         if not self.heads_only:
-            groups.append({"params": list(model.encoder.parameters()),
-                           "lr": cfg.finetune_lr * cfg.encoder_lr_scale})
+            enc = model.encoder
+            trained = (list(enc.parameters()) if cfg.finetune == "all" else
+                       [*enc.fp.parameters(), *enc.out.parameters()])
+            groups.append({"params": trained, "lr": cfg.finetune_lr * cfg.encoder_lr_scale})
         params = [p for g in groups for p in g["params"]]
         self.opt = torch.optim.Adam(groups)
         # L2-SP anchor: the weights the fine-tuning starts from (a few explored interactions
@@ -128,6 +135,7 @@ class W2EExplorer:
         self.features = features or FEATURES
         self._enc = encoder_key(model) if self.heads_only else ""
         self.clouds: list[np.ndarray] = []  # (N, 3) each
+        self._levels: dict[str, tuple[list[torch.Tensor], list[torch.Tensor | None]]] = {}
         self._feat_index: dict[tuple[int, int], int] = {}
         self._feat_table: torch.Tensor | None = None
         self._cloud_ids: dict[str, int] = {}
@@ -194,10 +202,37 @@ class W2EExplorer:
         self.explored = self.explored.cat(new)
 
     # --- features ---------------------------------------------------------------------------
+    def _propagate(self, points: Sequence[np.ndarray]) -> torch.Tensor:
+        """(B, N, F) features of clouds from their cached set-abstraction levels (decoder
+        mode: those layers are frozen, so a cloud's levels never change)."""
+        keys = [cloud_key(p) for p in points]
+        todo = [i for i, k in enumerate(keys) if k not in self._levels]
+        if todo:
+            with torch.no_grad():
+                self.model.eval()
+                for s in range(0, len(todo), 16):
+                    idx = todo[s:s + 16]
+                    pts = torch.from_numpy(np.stack([np.asarray(points[i], np.float32)
+                                                     for i in idx])).to(self.device)
+                    xyzs, feats = self.model.abstract(pts)
+                    for j, i in enumerate(idx):
+                        self._levels[keys[i]] = ([x[j] for x in xyzs],
+                                                 [None if f is None else f[j] for f in feats])
+        levels = [self._levels[k] for k in keys]
+        depth = len(levels[0][0])
+        xyzs = [torch.stack([lv[0][d] for lv in levels]) for d in range(depth)]
+        feats = [None] + [torch.stack([lv[1][d] for lv in levels]) for d in range(1, depth)]
+        return self.model.encoder.propagate(xyzs, feats)
+
     def cloud_features(self, points: Sequence[np.ndarray]) -> list[torch.Tensor]:
         """(N, F) features of each cloud: cached with a frozen encoder, else fresh."""
         if self.heads_only:
             return self.features.get(self.model, self._enc, points)
+        if self.mode == "decoder":
+            with torch.no_grad():
+                self.model.eval()
+                return [f for s in range(0, len(points), 16)
+                        for f in self._propagate(points[s:s + 16])]
         with torch.no_grad():
             self.model.eval()
             pts = torch.from_numpy(np.stack([np.asarray(p, np.float32) for p in points]))
@@ -233,6 +268,8 @@ class W2EExplorer:
         pts = [self.clouds[c] for c in uniq]
         if not grad:
             feats = torch.stack(self.cloud_features(pts))
+        elif self.mode == "decoder":
+            feats = self._propagate(pts)
         else:
             feats = self.model.encode(torch.from_numpy(np.stack(pts)).to(self.device))
         return feats[torch.from_numpy(inv.reshape(-1)).to(self.device),
@@ -327,7 +364,7 @@ class W2EExplorer:
         return {"loss_aff": la, "loss_sim": ls, "loss": la + ls}
 
     def _step_all(self, explored: Rows, replay: Rows) -> dict[str, float]:
-        """Every weight: one encoder pass over the sampled clouds, one Adam step on the
+        """Encoder trained (decoder or all): one pass over the sampled clouds, one Adam step on the
         affordance loss plus the similarity loss (the similarity head reads detached
         features, so only the affordance loss moves the encoder; its target counts the
         predictions before the step)."""

@@ -26,6 +26,11 @@ def default_device() -> torch.device:
     return torch.device("cuda" if torch.cuda.is_available() else "cpu")
 
 
+def _centred(clouds: torch.Tensor) -> torch.Tensor:
+    centre = 0.5 * (clouds.amax(dim=1, keepdim=True) + clouds.amin(dim=1, keepdim=True))
+    return clouds - centre
+
+
 class ActionHead(nn.Module):
     """MLP with one hidden layer on [point feature, action]: logit per (point, action)."""
 
@@ -74,8 +79,13 @@ class W2EModel(nn.Module):
         not depend on where the object stands (a table top, the sim origin); directions are
         unchanged by a shift.
         """
-        centre = 0.5 * (clouds.amax(dim=1, keepdim=True) + clouds.amin(dim=1, keepdim=True))
-        return self.encoder(clouds - centre)
+        return self.encoder(_centred(clouds))
+
+    def abstract(self, clouds: torch.Tensor
+                 ) -> tuple[list[torch.Tensor], list[torch.Tensor | None]]:
+        """The encoder's set-abstraction levels of (B, N, 3) clouds; ``encode`` equals
+        ``encoder.propagate(*abstract(clouds))``."""
+        return self.encoder.abstract(_centred(clouds))
 
     def heads(self, feats: torch.Tensor,
               actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

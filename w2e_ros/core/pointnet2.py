@@ -97,15 +97,26 @@ class PointNet2Encoder(nn.Module):
         self.fp = nn.ModuleList(fp)
         self.out = _mlp(c, (cfg.feat_dim,), cfg, dims=1)
 
-    def forward(self, xyz: torch.Tensor) -> torch.Tensor:
+    def abstract(self, xyz: torch.Tensor) -> tuple[list[torch.Tensor], list[torch.Tensor | None]]:
+        """The set-abstraction levels: points (B, N_l, 3) and features (B, N_l, C_l) per level,
+        the input first (no features). All the geometry (sampling, grouping) happens here."""
         xyzs: list[torch.Tensor] = [xyz]
         feats: list[torch.Tensor | None] = [None]
         for layer in self.sa:
             new_xyz, new_feats = layer(xyzs[-1], feats[-1])
             xyzs.append(new_xyz)
             feats.append(new_feats)
+        return xyzs, feats
+
+    def propagate(self, xyzs: list[torch.Tensor],
+                  feats: list[torch.Tensor | None]) -> torch.Tensor:
+        """Feature propagation from the deepest level back to the input points: (B, N, F).
+        Split from ``abstract`` so fine-tuning can train these layers on cached levels."""
         x = feats[-1]
         for i, layer in enumerate(self.fp):
             fine = len(self.sa) - 1 - i  # level receiving the features
             x = layer(xyzs[fine], xyzs[fine + 1], feats[fine], x)
         return self.out(x.transpose(1, 2)).transpose(1, 2)  # (B, N, feat_dim)
+
+    def forward(self, xyz: torch.Tensor) -> torch.Tensor:
+        return self.propagate(*self.abstract(xyz))
