@@ -78,3 +78,39 @@ def test_paired_interval_sees_a_real_difference_and_none_in_noise(tmp_path):
     n = get[("none", 1, "auroc", "random")]
     assert n["ci_low"] < 0 < n["ci_high"]  # noise: the interval straddles zero
     assert (tmp_path / "tables.md").exists() and (tmp_path / "metrics_vs_budget.png").exists()
+
+
+def _predictions(path: Path, methods: tuple[str, ...], y: np.ndarray, seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    arrays = {"test:success": y, "test:valid": np.ones_like(y),
+              "test:obs": np.repeat(np.arange(len(y) // 4), 4),
+              "test:category": np.full(len(y), "door")}
+    for m in methods:
+        for b in (0, 1):
+            arrays[f"pred:{m}|0|{b}|aff"] = rng.random(len(y))
+            arrays[f"pred:{m}|0|{b}|sim"] = rng.random(len(y))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(path, **arrays)
+
+
+def test_summarize_merges_runs_made_in_other_processes(tmp_path, capsys):
+    """Methods run into separate outputs (two processes, two machines) end in one table;
+    a run present twice, or a different test set, is refused and nothing is written."""
+    y = np.random.default_rng(0).random(80) < 0.3
+    _predictions(tmp_path / "a" / "predictions_cfw_push.npz", ("none", "random"), y, 1)
+    _predictions(tmp_path / "b" / "predictions_cfw_push.npz", ("similarity",), y, 2)
+    args = ["benchmark", "--summarize-only", "--combos", "cfw", "--primitives", "push",
+            "--seeds", "0", "--budgets", "1", "--bootstrap", "20"]
+    assert cli.main([*args, "--out", str(tmp_path / "a"), "--merge", str(tmp_path / "b")]) == 0
+    doc = json.loads((tmp_path / "a" / "benchmark.json").read_text())
+    assert {r["method"] for r in doc["rows"]} == {"none", "random", "similarity"}
+    assert any(r["method"] == "similarity" and r.get("vs") == "random" for r in doc["rows"])
+    before = (tmp_path / "a" / "predictions_cfw_push.npz").read_bytes()
+    # the same runs again: refused
+    assert cli.main([*args, "--out", str(tmp_path / "a"), "--merge", str(tmp_path / "b")]) == 2
+    assert "also in another source" in capsys.readouterr().err
+    # another test set: refused
+    _predictions(tmp_path / "c" / "predictions_cfw_push.npz", ("oracle",), ~y, 3)
+    assert cli.main([*args, "--out", str(tmp_path / "a"), "--merge", str(tmp_path / "c")]) == 2
+    assert "another test set" in capsys.readouterr().err
+    assert (tmp_path / "a" / "predictions_cfw_push.npz").read_bytes() == before

@@ -440,6 +440,9 @@ def _add_benchmark(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--summarize-only", action="store_true",
                    help="recompute benchmark.json / tables / curves from the predictions "
                         "files already in --out (e.g. after runs in parallel processes)")
+    p.add_argument("--merge", nargs="+", default=[], metavar="DIR",
+                   help="with --summarize-only: first copy the runs in these benchmark "
+                        "outputs' predictions files into --out (same test set)")
     p.add_argument("--threads", type=int, default=2,
                    help="torch CPU threads (local backend; a Ray task uses one)")
     _add_backend_args(p)
@@ -451,7 +454,12 @@ def _run_benchmark(a: argparse.Namespace) -> int:
 
     import torch
 
-    from w2e_ros.core.benchmark import BenchmarkConfig, run_benchmark, summarize
+    from w2e_ros.core.benchmark import (
+        BenchmarkConfig,
+        merge_predictions,
+        run_benchmark,
+        summarize,
+    )
 
     torch.set_num_threads(a.threads)
     cfg = BenchmarkConfig(
@@ -462,7 +470,15 @@ def _run_benchmark(a: argparse.Namespace) -> int:
         explore_objects=a.explore_objects, test_objects=a.test_objects, validate=a.validate,
         eval_points=a.points, eval_dirs=a.dirs, probe=a.probe, heatmaps=not a.no_heatmaps,
         bootstrap=a.bootstrap, explore=_explore_config(a))
+    if a.merge and not a.summarize_only:
+        print("w2e benchmark: --merge goes with --summarize-only", file=sys.stderr)
+        return 2
     if a.summarize_only:
+        try:
+            merge_predictions(a.out, a.merge)
+        except ValueError as e:
+            print(f"w2e benchmark: {e}", file=sys.stderr)
+            return 2
         summarize(a.out, cfg)
     else:
         with _backend(a, 1) as backend:  # local: the runs one after the other

@@ -299,6 +299,35 @@ def _save_predictions(path: Path, preds: dict[str, np.ndarray], ev: _Evaluator) 
     np.savez_compressed(path, **arrays)
 
 
+def merge_predictions(out: str | Path, sources: list[str | Path]) -> list[Path]:
+    """Copy the runs of other benchmark outputs (the same test set, other methods or seeds,
+    run in other processes or on other machines) into ``out``'s predictions files, so one
+    ``summarize`` pairs them all. A run already in ``out`` or a different test set is an
+    error: nothing is written then."""
+    if not sources:
+        return []
+    out = Path(out)
+    merged: dict[str, dict[str, np.ndarray]] = {}
+    for src in [out, *map(Path, sources)]:
+        for path in sorted(src.glob("predictions_*.npz")):
+            with np.load(path) as z:
+                arrays = {k: z[k] for k in z.files}
+            into = merged.setdefault(path.name, {})
+            for k, v in arrays.items():
+                if k.startswith("pred:") and k in into:
+                    raise ValueError(f"{path}: run {k[5:]} is also in another source")
+                if not k.startswith("pred:") and k in into and not np.array_equal(into[k], v):
+                    raise ValueError(f"{path}: {k} differs from the other sources' "
+                                     "(another test set)")
+                into[k] = v
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    for name, arrays in merged.items():
+        np.savez_compressed(out / name, **arrays)
+        written.append(out / name)
+    return written
+
+
 def _heatmaps(out: Path, prim: str, combo: str, world: Any, cats: list[str],
               models: dict[str, dict[int, W2EModel]], cfg: BenchmarkConfig) -> None:
     from w2e_ros.core.viz import heatmap_figure, normal_maps
