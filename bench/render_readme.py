@@ -3,8 +3,9 @@
 The README's numbers must come from the committed results, not be typed by hand: this
 renders the headline table (mean over seeds with 95 % bootstrap intervals, and the paired
 differences against ``random`` and ``none``) between the ``<!-- benchmark:begin -->`` and
-``<!-- benchmark:end -->`` markers. ``test/test_readme_results.py`` fails when the README and
-the JSON disagree.
+``<!-- benchmark:end -->`` markers (the largest budget), and the same table at budget N
+between ``<!-- benchmark-bN:begin -->`` and ``<!-- benchmark-bN:end -->``.
+``test/test_readme_results.py`` fails when the README and the JSON disagree.
 
     .venv/bin/python bench/render_readme.py            # rewrite the block
     .venv/bin/python bench/render_readme.py --check    # exit 1 when it is stale
@@ -14,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 from pathlib import Path
 
@@ -72,6 +74,18 @@ def render(doc: dict, combination: str | None = None, budget: int | None = None)
     return "\n".join(lines)
 
 
+BLOCK = re.compile(r"(<!-- benchmark(?:-b(\d+))?:begin -->)\n.*?\n"
+                   r"(<!-- benchmark(?:-b\d+)?:end -->)", re.S)
+
+
+def rewrite(text: str, doc: dict) -> str:
+    """Every block: ``benchmark`` at the largest budget, ``benchmark-b<N>`` at budget N."""
+    def block(m: re.Match) -> str:
+        budget = int(m.group(2)) if m.group(2) else None
+        return f"{m.group(1)}\n{render(doc, budget=budget)}\n{m.group(3)}"
+    return BLOCK.sub(block, text)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", default=str(ROOT / "bench" / "results" / "benchmark.json"))
@@ -83,9 +97,7 @@ def main(argv: list[str] | None = None) -> int:
     if BEGIN not in text or END not in text:
         print(f"{a.readme}: no {BEGIN} ... {END} block", file=sys.stderr)
         return 2
-    pre, rest = text.split(BEGIN, 1)
-    _, post = rest.split(END, 1)
-    new = f"{pre}{BEGIN}\n{render(doc)}\n{END}{post}"
+    new = rewrite(text, doc)
     if a.check:
         if new != text:
             print("README benchmark block is stale: run bench/render_readme.py",

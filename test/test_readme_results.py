@@ -31,3 +31,20 @@ def test_readme_approach_check_block_matches_the_committed_json():
     r = subprocess.run([sys.executable, str(ROOT / "bench" / "approach_check.py"), "--readme",
                         "--check"], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
+
+
+def test_a_budget_block_renders_that_budget():
+    """`<!-- benchmark-b1:begin -->` blocks show budget 1, the plain block the largest."""
+    import json
+
+    sys.path.insert(0, str(ROOT / "bench"))
+    from render_readme import rewrite
+
+    doc = json.loads((ROOT / "bench" / "results" / "benchmark.json").read_text())
+    text = ("a\n<!-- benchmark:begin -->\nold\n<!-- benchmark:end -->\nb\n"
+            "<!-- benchmark-b1:begin -->\nold\n<!-- benchmark-b1:end -->\nc\n")
+    out = rewrite(text, doc)
+    largest = max(r["budget"] for r in doc["rows"])
+    first, second = out.split("<!-- benchmark-b1:begin -->")
+    assert f"budget {largest} interactions" in first and "old" not in out
+    assert "budget 1 interactions" in second and second.endswith("<!-- benchmark-b1:end -->\nc\n")
