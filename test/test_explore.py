@@ -192,6 +192,19 @@ def test_budget_is_chosen_globally_so_an_unfamiliar_object_takes_more(novel):
     assert all(r.count(0) == 2 for r in model.rounds)
 
 
+def test_object_cap_spreads_a_budget_the_bar_would_give_to_one_object(novel):
+    # objects 1, 2 pass the bar after one round; object 0 never does: without a cap it takes
+    # the rest of the budget, with object_cap 1.5 (x budget 4 = 6) it stops at 6
+    for cap, n0, stopped in ((0.0, 10, "budget"), (1.5, 6, "cap")):
+        model, world = FakeModel([0.1, 0.8, 0.8], [0.0, 0.2, 0.2]), TaggedWorld(novel)
+        cfg = _fake_cfg(budget=4, round_size=3, per_object_per_round=2, sim_bar=0.9,
+                        object_cap=cap)
+        res = explore(model, world, [0, 1, 2], get_strategy("similarity"), cfg, "push")
+        targets = [int(s.target) for s in res.steps]
+        assert targets.count(0) == n0 and res.stopped == stopped, (cap, targets)
+        assert all(max(np.bincount(r)) <= 2 for r in model.rounds)
+
+
 def test_an_object_over_the_bar_is_dropped_while_the_others_continue(novel):
     # object 0 becomes familiar fast (+0.25 per interaction), the others slowly
     model, world = FakeModel([0.5] * 3, [0.25, 0.05, 0.05]), TaggedWorld(novel)

@@ -180,6 +180,10 @@ def _add_explore_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dirs", type=int, default=8, help="candidate actions per point")
     p.add_argument("--round-size", type=int, default=0,
                    help="interactions per round between model updates (0: objects / 2)")
+    p.add_argument("--object-cap", type=float, default=0.0,
+                   help="most interactions one object may take, as a multiple of the "
+                        "budget (0: no cap; the bar can otherwise leave the whole rest of "
+                        "the budget to the few objects that never pass it)")
     p.add_argument("--finetune", default="heads", choices=list(FINETUNE_MODES),
                    help="heads: the heads on cached features (encoder frozen); decoder: also "
                         "the encoder's feature propagation, on cached set-abstraction levels; "
@@ -209,7 +213,8 @@ def _explore_config(a: argparse.Namespace, **kw: object) -> ExploreConfig:
     from w2e_ros.core.config import ExploreConfig
 
     return ExploreConfig(points_per_object=a.points, dirs_per_point=a.dirs,
-                         round_size=a.round_size, finetune=a.finetune,
+                         round_size=a.round_size, object_cap=a.object_cap,
+                         finetune=a.finetune,
                          finetune_steps=a.finetune_steps, finetune_lr=a.finetune_lr,
                          finetune_clouds=a.finetune_clouds,
                          encoder_lr_scale=a.encoder_lr_scale,

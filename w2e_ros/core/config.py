@@ -101,6 +101,9 @@ class ExploreConfig:
     budget: int = 5
     round_size: int = 0  # interactions per round, between model updates (0: objects / 2)
     per_object_per_round: int = 2  # at most this many of a round's interactions per object
+    object_cap: float = 0.0  # most interactions one object may take, x budget (0: no cap);
+    # without it, once most objects pass the bar, the rest of the budget goes to the few
+    # that never do (measured: 405 of 550 pulls on one table and one switch)
     sim_bar: float = 0.9  # per object: stop exploring it when its mean similarity exceeds it
     points_per_object: int = 256  # candidate contact points per object and round
     dirs_per_point: int = 8  # candidate (direction, orientation) per point

@@ -155,7 +155,7 @@ class StepRecord:
 class ExplorationResult:
     strategy: str
     steps: list[StepRecord]
-    stopped: str  # "bar" | "budget" | "exhausted" | "cancelled" | "none"
+    stopped: str  # "bar" | "budget" | "cap" | "exhausted" | "cancelled" | "none"
     mean_similarity: list[float]  # over all candidates, before each round and after the last
     snapshots: dict[int, Any]  # budget -> model snapshot after that many rounds
 
@@ -224,6 +224,8 @@ def explore(model: ExplorationModel, world: ExplorationWorld, targets: Sequence[
                             for i in range(len(p))], np.float32)
                   for c, t, p in zip(clouds, targets, pools, strict=True)]
     used: list[set[int]] = [set() for _ in targets]
+    taken = np.zeros(n, np.int64)  # interactions per object, this run
+    cap = math.ceil(cfg.object_cap * cfg.budget) if cfg.object_cap > 0 else None
     active = list(range(n))
     records: list[StepRecord] = []
     means: list[float] = []
@@ -251,13 +253,20 @@ def explore(model: ExplorationModel, world: ExplorationWorld, targets: Sequence[
             if not active:
                 stopped = "bar"
                 break
+        if cap is not None:
+            active = [i for i in active if taken[i] < cap]
+            if not active:
+                stopped = "cap"
+                break
         k = min(round_size, total - len(records))
         cand_labels = None
         if labels is not None:
             cand_labels = [_without_labels(lab, u) for lab, u in zip(labels, used, strict=True)]
             cand_labels = [cand_labels[i] for i in active]
-        picks = strategy.select([scored[i] for i in active], k, cfg.per_object_per_round, rng,
-                                cand_labels)
+        per_object: int | list[int] = cfg.per_object_per_round
+        if cap is not None:  # no object is picked beyond its cap
+            per_object = [min(cfg.per_object_per_round, cap - int(taken[i])) for i in active]
+        picks = strategy.select([scored[i] for i in active], k, per_object, rng, cand_labels)
         if not picks:
             stopped = "exhausted"
             break
@@ -268,6 +277,7 @@ def explore(model: ExplorationModel, world: ExplorationWorld, targets: Sequence[
                 stopped = "cancelled"  # between interactions: learn from the executed ones
                 break
             obj = active[a_obj]
+            taken[obj] += 1
             action = cands[obj].action(clouds[obj], i, primitive)
             result = world.execute(targets[obj], action)
             if pools is not None:

@@ -12,6 +12,7 @@ gets most wrong (the most any selection rule can win); ``none`` does not explore
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -56,19 +57,20 @@ class Strategy:
             return -np.abs(s.affordance - np.asarray(labels, np.float32))
         return np.abs(s.affordance - 0.5)  # where2act / nosim: the least certain action
 
-    def select(self, scored: list[Scored], k: int, per_object: int,
+    def select(self, scored: list[Scored], k: int, per_object: int | Sequence[int],
                rng: np.random.Generator,
                labels: list[np.ndarray] | None = None) -> list[tuple[int, int]]:
         """The ``k`` lowest-key (object, candidate) pairs over all objects, at most
-        ``per_object`` from one object, best first."""
+        ``per_object`` (one number, or one per object) from one object, best first."""
         if not self.explores:
             raise RuntimeError(f"strategy {self.name!r} does not explore")
+        limits = [per_object] * len(scored) if isinstance(per_object, int) else per_object
         pool: list[tuple[float, int, int]] = []
         for o, s in enumerate(scored):
             if not len(s.affordance):
                 continue
             key = self.keys(s, rng, None if labels is None else labels[o])
-            for c in np.argsort(key, kind="stable")[:per_object]:
+            for c in np.argsort(key, kind="stable")[:int(limits[o])]:
                 pool.append((float(key[c]), o, int(c)))
         pool.sort(key=lambda t: t[0])
         return [(o, c) for _, o, c in pool[:k]]
