@@ -83,7 +83,8 @@ class InferenceSettings:
     num_best: int = param(8, "best / least familiar actions returned per object", min=1,
                           max=1000)
     finetune: str = param(_FT.finetune, "heads: fine-tune the heads on cached features "
-                          "(encoder frozen) | all: every weight")
+                          "(encoder frozen) | decoder: also the encoder's feature propagation "
+                          "| all: every weight")
     finetune_steps: int = param(_FT.finetune_steps, "most gradient steps per update_model "
                                 "call (stops when the explored-set fit levels off)", min=1,
                                 max=10000)
