@@ -94,8 +94,9 @@ def _predictions(path: Path, methods: tuple[str, ...], y: np.ndarray, seed: int)
 
 
 def test_summarize_merges_runs_made_in_other_processes(tmp_path, capsys):
-    """Methods run into separate outputs (two processes, two machines) end in one table;
-    a run present twice, or a different test set, is refused and nothing is written."""
+    """Methods run into separate outputs (two processes, two machines) end in one table; the
+    same run present twice merges, a run with other predictions or a different test set is
+    refused and nothing is written."""
     y = np.random.default_rng(0).random(80) < 0.3
     _predictions(tmp_path / "a" / "predictions_cfw_push.npz", ("none", "random"), y, 1)
     _predictions(tmp_path / "b" / "predictions_cfw_push.npz", ("similarity",), y, 2)
@@ -106,9 +107,13 @@ def test_summarize_merges_runs_made_in_other_processes(tmp_path, capsys):
     assert {r["method"] for r in doc["rows"]} == {"none", "random", "similarity"}
     assert any(r["method"] == "similarity" and r.get("vs") == "random" for r in doc["rows"])
     before = (tmp_path / "a" / "predictions_cfw_push.npz").read_bytes()
-    # the same runs again: refused
-    assert cli.main([*args, "--out", str(tmp_path / "a"), "--merge", str(tmp_path / "b")]) == 2
-    assert "also in another source" in capsys.readouterr().err
+    # the same runs again: nothing changes
+    assert cli.main([*args, "--out", str(tmp_path / "a"), "--merge", str(tmp_path / "b")]) == 0
+    assert (tmp_path / "a" / "predictions_cfw_push.npz").read_bytes() == before
+    # a run of the same name with other predictions: refused
+    _predictions(tmp_path / "d" / "predictions_cfw_push.npz", ("similarity",), y, 4)
+    assert cli.main([*args, "--out", str(tmp_path / "a"), "--merge", str(tmp_path / "d")]) == 2
+    assert "with other predictions" in capsys.readouterr().err
     # another test set: refused
     _predictions(tmp_path / "c" / "predictions_cfw_push.npz", ("oracle",), ~y, 3)
     assert cli.main([*args, "--out", str(tmp_path / "a"), "--merge", str(tmp_path / "c")]) == 2

@@ -302,8 +302,9 @@ def _save_predictions(path: Path, preds: dict[str, np.ndarray], ev: _Evaluator) 
 def merge_predictions(out: str | Path, sources: list[str | Path]) -> list[Path]:
     """Copy the runs of other benchmark outputs (the same test set, other methods or seeds,
     run in other processes or on other machines) into ``out``'s predictions files, so one
-    ``summarize`` pairs them all. A run already in ``out`` or a different test set is an
-    error: nothing is written then."""
+    ``summarize`` pairs them all. A run present twice must have identical predictions (runs
+    are deterministic: the same run made twice); a run that differs, or a different test
+    set, is an error and nothing is written."""
     if not sources:
         return []
     out = Path(out)
@@ -314,8 +315,9 @@ def merge_predictions(out: str | Path, sources: list[str | Path]) -> list[Path]:
                 arrays = {k: z[k] for k in z.files}
             into = merged.setdefault(path.name, {})
             for k, v in arrays.items():
-                if k.startswith("pred:") and k in into:
-                    raise ValueError(f"{path}: run {k[5:]} is also in another source")
+                if k.startswith("pred:") and k in into and not np.array_equal(into[k], v):
+                    raise ValueError(f"{path}: run {k[5:]} is also in another source, with "
+                                     "other predictions")
                 if not k.startswith("pred:") and k in into and not np.array_equal(into[k], v):
                     raise ValueError(f"{path}: {k} differs from the other sources' "
                                      "(another test set)")
