@@ -41,6 +41,8 @@ from w2e_ros.core.train import RunningAccuracy, make_deterministic
 
 log = logging.getLogger("w2e.finetune")
 
+LEVEL_CACHE_CLOUDS = 4096  # decoder mode: clouds whose set-abstraction levels are kept
+
 
 @dataclass
 class Rows:
@@ -218,7 +220,9 @@ class W2EExplorer:
                     for j, i in enumerate(idx):
                         self._levels[keys[i]] = ([x[j] for x in xyzs],
                                                  [None if f is None else f[j] for f in feats])
-        levels = [self._levels[k] for k in keys]
+        levels = [self._levels[k] for k in keys]  # held here, so eviction cannot drop them
+        while len(self._levels) > LEVEL_CACHE_CLOUDS:  # ~0.3 MB a cloud at 2048 points
+            self._levels.pop(next(iter(self._levels)))
         depth = len(levels[0][0])
         xyzs = [torch.stack([lv[0][d] for lv in levels]) for d in range(depth)]
         feats = [None] + [torch.stack([lv[1][d] for lv in levels]) for d in range(1, depth)]
