@@ -315,12 +315,11 @@ def merge_predictions(out: str | Path, sources: list[str | Path]) -> list[Path]:
                 arrays = {k: z[k] for k in z.files}
             into = merged.setdefault(path.name, {})
             for k, v in arrays.items():
-                if k.startswith("pred:") and k in into and not np.array_equal(into[k], v):
-                    raise ValueError(f"{path}: run {k[5:]} is also in another source, with "
-                                     "other predictions")
-                if not k.startswith("pred:") and k in into and not np.array_equal(into[k], v):
-                    raise ValueError(f"{path}: {k} differs from the other sources' "
-                                     "(another test set)")
+                if k in into and not np.array_equal(into[k], v):
+                    raise ValueError(
+                        f"{path}: run {k[5:]} is also in another source, with other "
+                        "predictions" if k.startswith("pred:") else
+                        f"{path}: {k} differs from the other sources' (another test set)")
                 into[k] = v
     out.mkdir(parents=True, exist_ok=True)
     written = []
