@@ -398,3 +398,18 @@ def test_fewshot_spends_the_budget_per_object_over_all_novel_categories():
     with pytest.raises(ValueError, match="mode"):
         fewshot(model, meta, world, ["kettle"], get_strategy("random"), cfg, "push",
                 mode="per-instance", per_category=1)
+
+
+def test_cli_explore_defaults_are_the_core_defaults():
+    """``w2e fewshot`` / ``benchmark`` / ``learnability`` with no tuning flags run the core's
+    ExploreConfig, so a default changed there reaches every front end."""
+    from dataclasses import asdict
+
+    from w2e_ros import cli
+    from w2e_ros.core.config import ExploreConfig
+
+    parser = cli.build_parser()
+    for argv in (["fewshot", "--model", "m.pt", "--out", "o"], ["benchmark"],
+                 ["learnability", "--model", "m.pt", "--pool-data", "p", "--test-data", "t"]):
+        got = asdict(cli._explore_config(parser.parse_args(argv)))
+        assert got == asdict(ExploreConfig()), argv[0]

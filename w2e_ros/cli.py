@@ -15,12 +15,11 @@ import sys
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from w2e_ros.core.config import FINETUNE_MODES
+from w2e_ros.core.config import FINETUNE_MODES, ExploreConfig
 from w2e_ros.core.strategies import STRATEGIES
 
 if TYPE_CHECKING:
     from w2e_ros.core.backends import Backend
-    from w2e_ros.core.config import ExploreConfig
 
 Handler = Callable[[argparse.Namespace], int | None]
 
@@ -175,43 +174,45 @@ def _run_train(a: argparse.Namespace) -> int:
 
 
 def _add_explore_args(p: argparse.ArgumentParser) -> None:
-    """The few-shot loop's settings, shared by ``fewshot`` and ``benchmark``."""
-    p.add_argument("--points", type=int, default=256, help="candidate points per object")
-    p.add_argument("--dirs", type=int, default=8, help="candidate actions per point")
-    p.add_argument("--round-size", type=int, default=0,
+    """The few-shot loop's settings, shared by ``fewshot`` and ``benchmark``; the defaults are
+    ExploreConfig's, so the CLI, the nodes and the core agree."""
+    d = ExploreConfig()
+    p.add_argument("--points", type=int, default=d.points_per_object,
+                   help="candidate points per object")
+    p.add_argument("--dirs", type=int, default=d.dirs_per_point, help="candidate actions per point")
+    p.add_argument("--round-size", type=int, default=d.round_size,
                    help="interactions per round between model updates (0: objects / 2)")
-    p.add_argument("--object-cap", type=float, default=0.0,
+    p.add_argument("--object-cap", type=float, default=d.object_cap,
                    help="most interactions one object may take, as a multiple of the "
                         "budget (0: no cap; the bar can otherwise leave the whole rest of "
                         "the budget to the few objects that never pass it)")
-    p.add_argument("--finetune", default="heads", choices=list(FINETUNE_MODES),
+    p.add_argument("--finetune", default=d.finetune, choices=list(FINETUNE_MODES),
                    help="heads: the heads on cached features (encoder frozen); decoder: also "
                         "the encoder's feature propagation, on cached set-abstraction levels; "
                         "all: every weight")
-    p.add_argument("--finetune-steps", type=int, default=500,
+    p.add_argument("--finetune-steps", type=int, default=d.finetune_steps,
                    help="most gradient steps per update (stops when the explored-set fit "
                         "levels off)")
-    p.add_argument("--finetune-lr", type=float, default=1e-3, help="fine-tuning learning rate")
-    p.add_argument("--finetune-clouds", type=int, default=4,
+    p.add_argument("--finetune-lr", type=float, default=d.finetune_lr,
+                   help="fine-tuning learning rate")
+    p.add_argument("--finetune-clouds", type=int, default=d.finetune_clouds,
                    help="with --finetune decoder | all: explored clouds per step")
-    p.add_argument("--encoder-lr-scale", type=float, default=1.0,
+    p.add_argument("--encoder-lr-scale", type=float, default=d.encoder_lr_scale,
                    help="with --finetune decoder | all: the encoder's learning rate relative "
                         "to the heads'")
-    p.add_argument("--anchor", type=float, default=0.1,
+    p.add_argument("--anchor", type=float, default=d.anchor,
                    help="L2-SP weight pulling the fine-tuned heads towards the trained ones "
                         "(0: off); without it a few interactions made the model worse")
-    p.add_argument("--replay-fraction", type=float, default=0.01,
+    p.add_argument("--replay-fraction", type=float, default=d.replay_fraction,
                    help="share of the training interactions replayed (distinct ones)")
     p.add_argument("--no-mask", action="store_true",
                    help="propose candidates without the simulator's movable mask (what a real "
                         "robot has)")
-    p.add_argument("--bar", type=float, default=0.9,
+    p.add_argument("--bar", type=float, default=d.sim_bar,
                    help="mean similarity of an object that ends its exploration (>1: never)")
 
 
 def _explore_config(a: argparse.Namespace, **kw: object) -> ExploreConfig:
-    from w2e_ros.core.config import ExploreConfig
-
     return ExploreConfig(points_per_object=a.points, dirs_per_point=a.dirs,
                          round_size=a.round_size, object_cap=a.object_cap,
                          finetune=a.finetune,
