@@ -93,3 +93,26 @@ def test_per_category_cli_writes_one_curve_per_category(setup):
     table = (out / "per_category.md").read_text()
     assert all(f"| {c} |" in table for c in NOVEL) and "N = 72" in table
     assert (out / "per_category_push.png").stat().st_size > 0
+
+
+def test_pool_selections_pick_what_they_say():
+    import numpy as np
+
+    from w2e_ros.core.learnability import select_pool
+
+    rng = np.random.default_rng(0)
+    predicted = rng.random(200)
+    success = rng.random(200) < 0.1
+    for sel in ("random", "oracle", "confident", "half_success"):
+        rows = select_pool(sel, 40, predicted, success, np.random.default_rng(1))
+        assert len(np.unique(rows)) == 40 and np.all(np.diff(rows) > 0), sel
+    conf = select_pool("confident", 40, predicted, success, rng)
+    assert set(conf) == set(np.argsort(-predicted)[:40])  # no labels used
+    wrong = np.abs(predicted - success)
+    assert wrong[select_pool("oracle", 40, predicted, success, rng)].min() >= np.sort(wrong)[-40]
+    half = select_pool("half_success", 40, predicted, success, rng)
+    assert success[half].sum() == 20  # the pool's rate is ~10 %
+    few = select_pool("half_success", 100, predicted, success, rng)  # positives run short
+    assert len(few) == 100 and success[few].sum() == success.sum()
+    with pytest.raises(ValueError, match="unknown selection"):
+        select_pool("best", 4, predicted, success, rng)

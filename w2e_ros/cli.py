@@ -15,7 +15,7 @@ import sys
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from w2e_ros.core.config import FINETUNE_MODES, ExploreConfig
+from w2e_ros.core.config import FINETUNE_MODES, LEARNABILITY_SELECTIONS, ExploreConfig
 from w2e_ros.core.strategies import STRATEGIES
 
 if TYPE_CHECKING:
@@ -305,7 +305,10 @@ def _add_learnability(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sizes", nargs="+", type=int, default=[0, 55, 110, 275, 550, 1100, 2200])
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     p.add_argument("--selections", nargs="+", default=["random", "oracle"],
-                   choices=["random", "oracle"])
+                   choices=list(LEARNABILITY_SELECTIONS),
+                   help="random; oracle: the N the model gets most wrong (hindsight); "
+                        "confident: the N it rates most likely to succeed (no labels); "
+                        "half_success: random with half successes (hindsight)")
     p.add_argument("--categories", nargs="+", default=None)
     p.add_argument("--references", nargs="+", default=[],
                    help="other checkpoints drawn as lines (e.g. the fulldata model)")

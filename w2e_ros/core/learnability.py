@@ -7,6 +7,11 @@ interactions: F-score, AUROC, average precision. ``selection="random"`` draws th
 uniformly; ``selection="oracle"`` takes the N the base model gets most wrong (hindsight
 labels), the most a selection rule could gain from the same pool. If the random curve does
 not rise with N, no exploration strategy can help and training must be fixed first.
+
+Two more selections ask WHY the oracle wins. ``confident`` takes the N the base model rates
+most likely to succeed (no labels: a rule a robot could follow); ``half_success`` draws the N
+at random with half of them successes (hindsight), which separates "the explored set holds
+more successes" from "the explored set holds the model's mistakes".
 """
 
 from __future__ import annotations
@@ -21,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from w2e_ros.core.categories import load_categories
-from w2e_ros.core.config import ExploreConfig
+from w2e_ros.core.config import LEARNABILITY_SELECTIONS, ExploreConfig
 from w2e_ros.core.data import InteractionData
 from w2e_ros.core.evaluate import evaluation_instances
 from w2e_ros.core.finetune import W2EExplorer, similarity_is_balanced
@@ -61,6 +66,27 @@ def _metrics(aff: np.ndarray, sim: np.ndarray, data: InteractionData) -> dict[st
     return out
 
 
+def select_pool(selection: str, n: int, predicted: np.ndarray, success: np.ndarray,
+                rng: np.random.Generator) -> np.ndarray:
+    """Indices of the ``n`` pool interactions a selection fine-tunes on (sorted), from the
+    base model's ``predicted`` success probability and the pool's labels (hindsight rules)."""
+    ok = np.asarray(success, bool)
+    if selection == "random":
+        rows = rng.choice(len(ok), size=n, replace=False)
+    elif selection in ("oracle", "confident"):  # most wrong / most likely first, ties random
+        key = np.abs(predicted - ok) if selection == "oracle" else predicted
+        rows = np.argsort(-(key + rng.random(len(ok)) * 1e-6))[:n]
+    elif selection == "half_success":
+        pos, neg = np.flatnonzero(ok), np.flatnonzero(~ok)
+        k = min(len(pos), max(n // 2, n - len(neg)))  # half, unless one class runs short
+        rows = np.concatenate([rng.choice(pos, size=k, replace=False),
+                               rng.choice(neg, size=n - k, replace=False)])
+    else:
+        raise ValueError(f"unknown selection {selection!r} "
+                         f"({' | '.join(LEARNABILITY_SELECTIONS)})")
+    return np.sort(rows)
+
+
 def run_learnability(cfg: LearnabilityConfig) -> dict:
     """Every (selection, seed, N): fine-tune a copy of the model on N pool interactions and
     evaluate it; writes rows.jsonl, learnability.json, learnability.md and .png to ``out``."""
@@ -87,7 +113,6 @@ def run_learnability(cfg: LearnabilityConfig) -> dict:
         replay = replay_data(InteractionData.load(cfg.replay_data), meta, prim)
     base_aff, base_sim = predict_interactions(model, test)
     pool_aff, _ = predict_interactions(model, pool)
-    wrongness = np.abs(pool_aff - pool.success.astype(np.float32))
     log.info("%s: pool %d interactions (%.1f%% positive) on %d clouds, test %d (%.1f%% "
              "positive)", prim, pool.num_interactions, 100 * pool.positive_rate(),
              pool.num_observations, test.num_interactions, 100 * test.positive_rate())
@@ -108,14 +133,8 @@ def run_learnability(cfg: LearnabilityConfig) -> dict:
         if n_eff == 0:
             aff, sim, fit = base_aff, base_sim, {}
         else:
-            rng = np.random.default_rng(seed)
-            if sel == "random":
-                rows_sel = rng.choice(pool.num_interactions, size=n_eff, replace=False)
-            elif sel == "oracle":  # most wrong first, ties broken at random
-                jitter = rng.random(pool.num_interactions) * 1e-6
-                rows_sel = np.argsort(-(wrongness + jitter))[:n_eff]
-            else:
-                raise ValueError(f"unknown selection {sel!r} (random | oracle)")
+            rows_sel = select_pool(sel, n_eff, pool_aff, pool.success,
+                                   np.random.default_rng(seed))
             m = copy.deepcopy(model)
             m.load_state_dict(initial)
             ecfg = ExploreConfig(**{**asdict(cfg.explore), "seed": seed})
@@ -123,7 +142,7 @@ def run_learnability(cfg: LearnabilityConfig) -> dict:
                                    meta.get("sim_categories", ()),
                                    train_similarity=bool(meta.get("sim_categories")),
                                    seed=seed, balanced_similarity=similarity_is_balanced(meta))
-            explorer.add_data(pool, np.sort(rows_sel))
+            explorer.add_data(pool, rows_sel)
             fit = explorer.fit()
             aff, sim = predict_interactions(m, test)
         row = {"primitive": prim, "selection": sel, "seed": seed, "n": n_eff,
