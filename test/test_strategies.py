@@ -26,6 +26,11 @@ def test_uncertainty_rules_pick_the_affordance_closest_to_one_half(name):
     assert get_strategy(name).choose(_scored(), np.random.default_rng(0)) == (3, 0)
 
 
+def test_confident_tries_the_likeliest_successes_first_capped_per_object():
+    picks = get_strategy("confident").select(_scored(), 3, 1, np.random.default_rng(0))
+    assert picks == [(3, 1), (0, 0), (1, 0)]  # 0.99, 0.9, then object 1's best (0.45)
+
+
 def test_random_picks_valid_candidates_from_every_object():
     rng = np.random.default_rng(0)
     picks = [get_strategy("random").choose(_scored(), rng) for _ in range(200)]

@@ -80,7 +80,7 @@ class PlannerSettings:
     """Parameters of the planner node (config/w2e_stack.yaml: ``planner_node``)."""
 
     strategy: str = param("similarity", "exploration strategy: similarity (Where2Explore), "
-                          "where2act, nosim, random")
+                          "where2act, nosim, confident, random")
     points_per_object: int = param(256, "candidate contact points per object and step", min=1)
     dirs_per_point: int = param(8, "candidate gripper frames per contact point", min=1)
     default_bar: float = param(0.9, "similarity bar when the request gives 0", min=0.0,
