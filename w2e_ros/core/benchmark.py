@@ -397,14 +397,24 @@ def _stats(path: Path, cfg: BenchmarkConfig, rng: np.random.Generator) -> list[d
         rows = np.concatenate([members[i] for i in pick]) if len(pick) else all_rows
         objs = rng.integers(n_obj, size=n_obj) if n_obj else all_objs
         boots.append((rows, objs, list(rng.choice(seeds, size=len(seeds)))))
+    cache: dict[tuple[str, int, str], tuple[float, np.ndarray]] = {}
+
+    def stats(method: str, b: int, metric: str) -> tuple[float, np.ndarray]:
+        """Point value and bootstrap values, computed once (the references are paired with
+        every method on the same resamples)."""
+        key = (method, b, metric)
+        if key not in cache:
+            cache[key] = (value(method, b, metric, all_rows, all_objs, seeds),
+                          np.array([value(method, b, metric, r, o, sp) for r, o, sp in boots]))
+        return cache[key]
+
     out = []
     for metric in METRICS:
         for method in methods:
             for b in budgets:
-                point = value(method, b, metric, all_rows, all_objs, seeds)
+                point, bs = stats(method, b, metric)
                 if not np.isfinite(point):
                     continue
-                bs = np.array([value(method, b, metric, r, o, sp) for r, o, sp in boots])
                 n_seeds = sum((method, sd, b) in preds for sd in seeds)
                 base = {"combination": combo, "primitive": prim, "method": method,
                         "budget": b, "metric": metric, "n_seeds": n_seeds}
@@ -412,9 +422,9 @@ def _stats(path: Path, cfg: BenchmarkConfig, rng: np.random.Generator) -> list[d
                 for ref in REFERENCES:
                     if ref == method or ref not in methods:
                         continue
-                    d = point - value(ref, b, metric, all_rows, all_objs, seeds)
-                    bd = bs - np.array([value(ref, b, metric, r, o, sp) for r, o, sp in boots])
-                    out.append({**base, "vs": ref, "mean": d, **_ci(bd)})
+                    ref_point, ref_bs = stats(ref, b, metric)
+                    out.append({**base, "vs": ref, "mean": point - ref_point,
+                                **_ci(bs - ref_bs)})
     return out
 
 
