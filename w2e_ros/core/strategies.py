@@ -6,8 +6,8 @@ per object. ``similarity`` is Where2Explore's rule (lowest similarity = least fa
 geometry), ``similarity_sampled`` draws in proportion to unfamiliarity instead;
 ``where2act`` / ``nosim`` explore where the affordance is least certain (closest to 0.5),
 with the Where2Act baseline model or with ours; ``confident`` tries the actions the model
-rates most likely to succeed (successes are what teach a novel category: ``w2e learnability``
-with half successes beat random at a fifth of the interactions); ``random`` ranks at random;
+rates most likely to succeed (a baseline: it finds successes, but the ones the model already
+expected, and measured below random on pull); ``random`` ranks at random;
 ``oracle`` uses hindsight labels from the simulator and picks the actions the current model
 gets most wrong (the most any selection rule can win); ``none`` does not explore.
 """
