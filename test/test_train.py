@@ -440,3 +440,60 @@ def test_w2e_calibrate_balanced_lowers_the_similarity_where_successes_are_missed
     # balanced: the successes' geometry is clearly less familiar than the failures'
     assert sims["balanced"][pos].mean() < sims["natural"][pos].mean() - 0.1
     assert auroc(1 - sims["balanced"], pos) > 0.6
+
+
+def test_w2e_train_ablation_flags_drop_the_similarity_loss(tmp_path):
+    """``--sim-weight 0`` trains the affordance head alone (the total loss is the affordance
+    loss), ``--sim-detach-encoder`` keeps the similarity loss out of the encoder; both are
+    recorded in the run's config so an ablation can be told from the default."""
+    import subprocess
+    import sys
+
+    synthetic_data(obs_per_cat=2, per_obs=16, num_points=2048).save_shard(
+        tmp_path / "data" / "shard-00000.npz")
+    out = tmp_path / "run"
+    proc = subprocess.run(
+        [sys.executable, "-m", "w2e_ros.cli", "train", "--data", str(tmp_path / "data"),
+         "--out", str(out), "--steps", "2", "--clouds", "2", "--per-cloud", "8",
+         "--sim-weight", "0", "--sim-detach-encoder", "--calibrate-steps", "0",
+         "--log-every", "1", "--threads", "1", "--no-progress"],
+        capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    cfg = json.loads((out / "config.json").read_text())["train"]
+    assert cfg["sim_weight"] == 0.0 and cfg["sim_grad_to_encoder"] is False
+    lines = [json.loads(s) for s in (out / "metrics.jsonl").read_text().splitlines()]
+    assert all(r["loss_sim"] > 0 for r in lines)  # still measured ...
+    assert all(r["loss"] == pytest.approx(r["loss_aff"]) for r in lines)  # ... not trained
+
+
+def test_w2e_calibrate_gives_a_where2act_model_a_similarity_on_its_training_categories(
+        tmp_path):
+    """The 'wide' variant: a where2act model (affordance on all three training categories)
+    gets a similarity head fitted to where its affordance head is right on them, and says so
+    in its meta (the explorer then trains the similarity too); a fulldata model, which has
+    no held-out categories to be familiar or not with, is refused with a clear error."""
+    import subprocess
+    import sys
+
+    from w2e_ros.core.model import W2EModel, load_model, save_model
+
+    data = synthetic_data(obs_per_cat=4, per_obs=32, seed=5)
+    data.save_shard(tmp_path / "train" / "shard-00000.npz")
+    torch.manual_seed(0)
+    cmd = [sys.executable, "-m", "w2e_ros.cli", "calibrate", "--data", str(tmp_path / "train"),
+           "--steps", "200", "--threads", "1"]
+    for method in ("where2act", "fulldata"):
+        src = save_model(tmp_path / f"{method}.pt", W2EModel(SMALL),
+                         {"method": method, "combo": "cfw", "primitive": "push"})
+        out = tmp_path / f"{method}_w.pt"
+        proc = subprocess.run([*cmd, "--model", str(src), "--out", str(out)],
+                              capture_output=True, text=True, timeout=300)
+        if method == "fulldata":
+            assert proc.returncode != 0 and "no similarity categories" in proc.stderr
+            continue
+        assert proc.returncode == 0, proc.stderr
+        model, meta = load_model(out, "cpu")
+        assert meta["method"] == "where2act"
+        assert meta["sim_categories"] == meta["aff_categories"] == ["cabinet", "faucet", "window"]
+        aff, sim = predict_interactions(model, data, cache=None)
+        assert auroc(sim, (aff > 0.5) == data.success) > 0.6  # it ranks its own correctness

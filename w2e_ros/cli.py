@@ -115,6 +115,11 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
                    help="similarity loss to the running accuracy (reference code: bce)")
     p.add_argument("--aff-share", type=float, default=0.5,
                    help="share of each batch's clouds from C_aff (w2e)")
+    p.add_argument("--sim-weight", type=float, default=1.0,
+                   help="weight of the similarity loss (w2e; 0: the affordance head alone, "
+                        "for ablations)")
+    p.add_argument("--sim-detach-encoder", action="store_true",
+                   help="the similarity loss trains its head only, not the shared encoder")
     p.add_argument("--flip-share", type=float, default=0.25,
                    help="share of each cloud's rows that are flipped-approach negatives")
     p.add_argument("--exclude-invalid", action="store_true",
@@ -150,6 +155,7 @@ def _run_train(a: argparse.Namespace) -> int:
 
     cfg = TrainConfig(method=a.method, combo=a.combo, primitive=a.primitive, lr=a.lr,
                       weight_decay=a.weight_decay, sim_loss=a.sim_loss,
+                      sim_weight=a.sim_weight, sim_grad_to_encoder=not a.sim_detach_encoder,
                       aff_share=a.aff_share, flip_share=a.flip_share,
                       include_invalid=not a.exclude_invalid,
                       clouds_per_batch=a.clouds, interactions_per_cloud=a.per_cloud,
@@ -565,7 +571,10 @@ def _add_calibrate(sub: argparse._SubParsersAction) -> None:
         description="Fit the similarity head anew on the training interactions of the model's "
                     "similarity categories: target = the affordance head is right. With "
                     "--balanced successes and failures weigh half each, so 'predicts fail "
-                    "and is right because most actions fail' no longer reads as familiar.")
+                    "and is right because most actions fail' no longer reads as familiar. "
+                    "A where2act model (affordance on all training categories) gets a "
+                    "similarity fitted on those categories: the 'wide' variant, which "
+                    "explores with every w2e strategy (README, research log).")
     p.add_argument("--model", required=True, help="checkpoint to calibrate")
     p.add_argument("--data", required=True, help="its training collection (w2e collect --out)")
     p.add_argument("--out", required=True, help="where to write the calibrated checkpoint")
@@ -587,16 +596,21 @@ def _run_calibrate(a: argparse.Namespace) -> int:
     torch.set_num_threads(a.threads)
     model, meta = load_model(a.model)
     method, combo = str(meta.get("method", "w2e")), str(meta.get("combo", "cfw"))
-    _, sim_cats = method_categories(method, combo)
+    aff_cats, sim_cats = method_categories(method, combo)
     if not sim_cats:
-        raise ValueError(f"{a.model}: a {method} model has no similarity categories")
+        if method != "where2act":
+            raise ValueError(f"{a.model}: a {method} model has no similarity categories")
+        # "wide": the affordance head knows every training category; the similarity is
+        # fitted to where that head is right on them (no category is held out from it)
+        sim_cats = aff_cats
     primitive = meta.get("primitive")
     if not primitive:
         raise ValueError(f"{a.model} does not name its primitive (not a w2e train checkpoint)")
     data = load_training_data(a.data, method, combo, primitive)
     stats = calibrate_similarity(model, data, sim_cats, a.steps, a.seed, balanced=a.balanced)
     stats["balanced"] = float(a.balanced)
-    path = save_model(a.out, model, {**meta, "calibration": stats})
+    path = save_model(a.out, model, {**meta, "aff_categories": list(aff_cats),
+                                     "sim_categories": list(sim_cats), "calibration": stats})
     print(f"{path}: {json.dumps({k: round(v, 4) for k, v in stats.items()})}")
     return 0
 

@@ -1,0 +1,119 @@
+"""Held-out curves of several training runs side by side (issue 8: why does a model generalise).
+
+Reads the validation records of each run's ``metrics.jsonl`` (``w2e train --val-data``) and,
+for finished checkpoints given with ``--checkpoint LABEL=PATH``, scores them with the same
+validator on ``--val-data``. Writes a markdown table (metric at every validated step, and each
+run's best-step row) and one image with a panel per metric.
+
+    .venv/bin/python bench/compare_training.py --runs where2act=runs/where2act_cfw_pull \
+        nosim=runs_abl/w2e_nosim_cabinet_pull w2e=runs_abl/w2e_pull_1440 \
+        --checkpoint shipped=checkpoints/w2e_cfw_pull.pt \
+        --val-data data/val/cfw_heldout data/valset/novel_cfw --out bench/results/training_ablation
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+METRICS = ("caff_auroc", "csim_auroc", "novel_auroc", "novel_fscore", "novel_ap",
+           "novel_valid_auroc", "novel_simcorr_auroc")
+
+
+def _records(run: Path) -> list[dict]:
+    rows = [json.loads(s) for s in (run / "metrics.jsonl").read_text().splitlines()]
+    return [r for r in rows if "val_score" in r]
+
+
+def _score_checkpoint(path: str, val_dirs: list[str]) -> dict:
+    from w2e_ros.core.data import InteractionData
+    from w2e_ros.core.model import load_model
+    from w2e_ros.core.train import Validator, method_categories
+
+    model, meta = load_model(path, "cpu")
+    model.eval()
+    aff, sim = method_categories(meta["method"], meta["combo"])
+    data = InteractionData.concat([InteractionData.load(d) for d in val_dirs])
+    out = Validator(data, aff, sim, meta["primitive"]).run(model)
+    return {"step": meta.get("step", -1), **{f"val_{k}": v for k, v in out.items()}}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--runs", nargs="*", default=[], help="LABEL=RUN_DIR")
+    ap.add_argument("--checkpoint", nargs="*", default=[], help="LABEL=MODEL_PT (scored now)")
+    ap.add_argument("--val-data", nargs="*", default=[])
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--out", required=True)
+    a = ap.parse_args()
+    import torch
+
+    torch.set_num_threads(a.threads)
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    curves: dict[str, list[dict]] = {}
+    for spec in a.runs:
+        label, run = spec.split("=", 1)
+        curves[label] = _records(Path(run))
+    points = {}
+    for spec in a.checkpoint:
+        label, path = spec.split("=", 1)
+        points[label] = _score_checkpoint(path, a.val_data)
+
+    def cell(r: dict, m: str) -> str:
+        v = r.get(f"val_{m}")
+        return "–" if v is None or not np.isfinite(v) else f"{100 * v:.1f}"
+
+    lines = ["| run | step | " + " | ".join(METRICS) + " |",
+             "|---|---|" + "---|" * len(METRICS)]
+    for label, recs in curves.items():
+        for r in recs:
+            lines.append(f"| {label} | {r['step']} | " + " | ".join(cell(r, m) for m in METRICS)
+                         + " |")
+    best = ["| run (best step by the training-category score) | step | "
+            + " | ".join(METRICS) + " |", "|---|---|" + "---|" * len(METRICS)]
+    for label, recs in curves.items():
+        r = max(recs, key=lambda r: r["val_score"])
+        best.append(f"| {label} | {r['step']} | " + " | ".join(cell(r, m) for m in METRICS)
+                    + " |")
+    for label, r in points.items():
+        best.append(f"| {label} | {r['step']} | " + " | ".join(cell(r, m) for m in METRICS)
+                    + " |")
+    text = ("Held-out validation, % (caff / csim: unseen instances of the training categories; "
+            "novel: explore instances of the 11 novel categories, a diagnostic only)\n\n"
+            + "\n".join(best) + "\n\nEvery validated step:\n\n" + "\n".join(lines) + "\n")
+    (out / "training_ablation.md").write_text(text)
+    (out / "training_ablation.json").write_text(json.dumps(
+        {"curves": curves, "checkpoints": points}, indent=1))
+    print(text)
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    shown = ("caff_auroc", "csim_auroc", "novel_auroc", "novel_fscore")
+    fig, axes = plt.subplots(1, len(shown), figsize=(4 * len(shown), 3.4))
+    for ax, m in zip(axes, shown, strict=True):
+        for label, recs in curves.items():
+            if recs and f"val_{m}" in recs[0]:
+                ax.plot([r["step"] for r in recs], [100 * r[f"val_{m}"] for r in recs], "o-",
+                        label=label, ms=3)
+        for label, r in points.items():
+            if f"val_{m}" in r:
+                ax.plot([r["step"]], [100 * r[f"val_{m}"]], "*", ms=10, label=label)
+        ax.set_title(m.replace("_", " "))
+        ax.set_xlabel("step")
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("%")
+    axes[-1].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out / "training_ablation.png", dpi=110)
+    return 0 if all(np.isfinite(r["val_score"]) for recs in curves.values() for r in recs) else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
