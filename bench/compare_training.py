@@ -82,8 +82,9 @@ def main() -> int:
     for label, r in points.items():
         best.append(f"| {label} | {r['step']} | " + " | ".join(cell(r, m) for m in METRICS)
                     + " |")
-    text = ("Held-out validation, % (caff / csim: unseen instances of the training categories; "
-            "novel: explore instances of the 11 novel categories, a diagnostic only)\n\n"
+    text = ("Held-out validation, % (caff / csim: unseen instances of the training categories "
+            "(a where2act model's caff holds all three); novel: explore instances of the 11 "
+            "novel categories, the validation split)\n\n"
             + "\n".join(best) + "\n\nEvery validated step:\n\n" + "\n".join(lines) + "\n")
     (out / "training_ablation.md").write_text(text)
     (out / "training_ablation.json").write_text(json.dumps(
@@ -96,16 +97,18 @@ def main() -> int:
     import matplotlib.pyplot as plt
 
     shown = ("caff_auroc", "csim_auroc", "novel_auroc", "novel_fscore")
+    colour = {label: f"C{i}" for i, label in enumerate([*curves, *points])}
     fig, axes = plt.subplots(1, len(shown), figsize=(4 * len(shown), 3.4))
     for ax, m in zip(axes, shown, strict=True):
         for label, recs in curves.items():
-            if recs and f"val_{m}" in recs[0]:
+            if recs and f"val_{m}" in recs[0]:  # a where2act run has no csim group
                 ax.plot([r["step"] for r in recs], [100 * r[f"val_{m}"] for r in recs], "o-",
-                        label=label, ms=3)
+                        label=label, ms=3, color=colour[label])
         for label, r in points.items():
             if f"val_{m}" in r:
-                ax.plot([r["step"]], [100 * r[f"val_{m}"]], "*", ms=10, label=label)
-        ax.set_title(m.replace("_", " "))
+                ax.plot([r["step"]], [100 * r[f"val_{m}"]], "*", ms=10, label=label,
+                        color=colour[label])
+        ax.set_title(m.replace("_", " ") + (" (where2act: all 3)" if m == "caff_auroc" else ""))
         ax.set_xlabel("step")
         ax.grid(alpha=0.3)
     axes[0].set_ylabel("%")
