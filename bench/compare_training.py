@@ -84,7 +84,9 @@ def main() -> int:
                     + " |")
     text = ("Held-out validation, % (caff / csim: unseen instances of the training categories "
             "(a where2act model's caff holds all three); novel: explore instances of the 11 "
-            "novel categories, the validation split)\n\n"
+            "novel categories, the validation split). Rows of runs are as validated during "
+            "training, before the similarity calibration; rows of checkpoints are scored now."
+            "\n\n"
             + "\n".join(best) + "\n\nEvery validated step:\n\n" + "\n".join(lines) + "\n")
     (out / "training_ablation.md").write_text(text)
     (out / "training_ablation.json").write_text(json.dumps(
