@@ -119,3 +119,11 @@ def test_summarize_merges_runs_made_in_other_processes(tmp_path, capsys):
     assert cli.main([*args, "--out", str(tmp_path / "a"), "--merge", str(tmp_path / "c")]) == 2
     assert "another test set" in capsys.readouterr().err
     assert (tmp_path / "a" / "predictions_cfw_push.npz").read_bytes() == before
+    # DIR:METHODS takes only those runs: e's other similarity run would be refused, its oracle joins
+    _predictions(tmp_path / "e" / "predictions_cfw_push.npz", ("similarity", "oracle"), y, 4)
+    assert cli.main([*args, "--out", str(tmp_path / "a"), "--merge",
+                     f"{tmp_path / 'e'}:oracle"]) == 0
+    with np.load(tmp_path / "a" / "predictions_cfw_push.npz") as z, \
+            np.load(tmp_path / "b" / "predictions_cfw_push.npz") as b:
+        assert "pred:oracle|0|1|aff" in z.files
+        assert np.array_equal(z["pred:similarity|0|1|aff"], b["pred:similarity|0|1|aff"])

@@ -455,9 +455,10 @@ def _add_benchmark(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--summarize-only", action="store_true",
                    help="recompute benchmark.json / tables / curves from the predictions "
                         "files already in --out (e.g. after runs in parallel processes)")
-    p.add_argument("--merge", nargs="+", default=[], metavar="DIR",
+    p.add_argument("--merge", nargs="+", default=[], metavar="DIR[:METHOD,...]",
                    help="with --summarize-only: first copy the runs in these benchmark "
-                        "outputs' predictions files into --out (same test set)")
+                        "outputs' predictions files into --out (same test set); DIR:m1,m2 "
+                        "copies only those methods' runs")
     p.add_argument("--threads", type=int, default=2,
                    help="torch CPU threads (local backend; a Ray task uses one)")
     _add_backend_args(p)

@@ -304,15 +304,19 @@ def merge_predictions(out: str | Path, sources: list[str | Path]) -> list[Path]:
     run in other processes or on other machines) into ``out``'s predictions files, so one
     ``summarize`` pairs them all. A run present twice must have identical predictions (runs
     are deterministic: the same run made twice); a run that differs, or a different test
-    set, is an error and nothing is written."""
+    set, is an error and nothing is written. A source ``DIR:METHOD,...`` contributes only
+    those methods' runs (e.g. a rerun of one method with another setting beside the rest)."""
     if not sources:
         return []
     out = Path(out)
     merged: dict[str, dict[str, np.ndarray]] = {}
-    for src in [out, *map(Path, sources)]:
-        for path in sorted(src.glob("predictions_*.npz")):
+    for src in [str(out), *map(str, sources)]:
+        src, _, only = src.partition(":")
+        keep = set(only.split(",")) if only else None
+        for path in sorted(Path(src).glob("predictions_*.npz")):
             with np.load(path) as z:
-                arrays = {k: z[k] for k in z.files}
+                arrays = {k: z[k] for k in z.files if keep is None or not k.startswith("pred:")
+                          or k[5:].split("|")[0] in keep}
             into = merged.setdefault(path.name, {})
             for k, v in arrays.items():
                 if k in into and not np.array_equal(into[k], v):
