@@ -44,6 +44,9 @@ def main() -> int:
     ap.add_argument("--runs", nargs="*", default=[], help="LABEL=RUN_DIR")
     ap.add_argument("--checkpoint", nargs="*", default=[], help="LABEL=MODEL_PT (scored now)")
     ap.add_argument("--val-data", nargs="*", default=[])
+    ap.add_argument("--metrics", nargs="*", default=list(METRICS),
+                    help="validator keys shown as columns (default: %(default)s)")
+    ap.add_argument("--name", default="training_ablation", help="stem of the output files")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--out", required=True)
     a = ap.parse_args()
@@ -65,24 +68,26 @@ def main() -> int:
             label, path = spec.split("=", 1)
             points[label] = _score_checkpoint(path, val)
 
+    metrics = tuple(a.metrics)
+
     def cell(r: dict, m: str) -> str:
         v = r.get(f"val_{m}")
         return "–" if v is None or not np.isfinite(v) else f"{100 * v:.1f}"
 
-    lines = ["| run | step | " + " | ".join(METRICS) + " |",
-             "|---|---|" + "---|" * len(METRICS)]
+    lines = ["| run | step | " + " | ".join(metrics) + " |",
+             "|---|---|" + "---|" * len(metrics)]
     for label, recs in curves.items():
         for r in recs:
-            lines.append(f"| {label} | {r['step']} | " + " | ".join(cell(r, m) for m in METRICS)
+            lines.append(f"| {label} | {r['step']} | " + " | ".join(cell(r, m) for m in metrics)
                          + " |")
     best = ["| run (best step by the training-category score) | step | "
-            + " | ".join(METRICS) + " |", "|---|---|" + "---|" * len(METRICS)]
+            + " | ".join(metrics) + " |", "|---|---|" + "---|" * len(metrics)]
     for label, recs in curves.items():
         r = max(recs, key=lambda r: r["val_score"])
-        best.append(f"| {label} | {r['step']} | " + " | ".join(cell(r, m) for m in METRICS)
+        best.append(f"| {label} | {r['step']} | " + " | ".join(cell(r, m) for m in metrics)
                     + " |")
     for label, r in points.items():
-        best.append(f"| {label} | {r['step']} | " + " | ".join(cell(r, m) for m in METRICS)
+        best.append(f"| {label} | {r['step']} | " + " | ".join(cell(r, m) for m in metrics)
                     + " |")
     text = ("Held-out validation, % (caff / csim: unseen instances of the training categories "
             "(a where2act model's caff holds all three); novel: explore instances of the 11 "
@@ -90,8 +95,8 @@ def main() -> int:
             "training, before the similarity calibration; rows of checkpoints are scored now."
             "\n\n"
             + "\n".join(best) + "\n\nEvery validated step:\n\n" + "\n".join(lines) + "\n")
-    (out / "training_ablation.md").write_text(text)
-    (out / "training_ablation.json").write_text(json.dumps(
+    (out / f"{a.name}.md").write_text(text)
+    (out / f"{a.name}.json").write_text(json.dumps(
         {"curves": curves, "checkpoints": points}, indent=1))
     print(text)
 
@@ -118,7 +123,7 @@ def main() -> int:
     axes[0].set_ylabel("%")
     axes[-1].legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(out / "training_ablation.png", dpi=110)
+    fig.savefig(out / f"{a.name}.png", dpi=110)
     return 0
 
 

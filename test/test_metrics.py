@@ -16,6 +16,7 @@ from w2e_ros.core.metrics import (
     fscore,
     mean_std,
     success_rate,
+    within_class_auroc,
 )
 
 
@@ -107,6 +108,25 @@ def test_average_precision_hand_computed():
     assert average_precision(np.array([0.9, 0.8, 0.1, 0.0]), np.array([1, 1, 0, 0], bool)) == 1.0
     assert average_precision(np.array([0.9, 0.8, 0.1, 0.0]), np.array([0, 0, 1, 1], bool)) == \
         pytest.approx((1 / 3 + 2 / 4) / 2)
+
+
+def test_within_class_auroc_sees_only_what_the_prediction_does_not():
+    # predicted successes are mostly wrong, predicted failures mostly right: a score that is
+    # just the predicted class ranks correctness well overall, and at chance within a class
+    rng = np.random.default_rng(0)
+    pred = rng.random(4000) < 0.3
+    correct = np.where(pred, rng.random(4000) < 0.1, rng.random(4000) < 0.95)
+    class_only = np.where(pred, 0.2, 0.8) + rng.random(4000) * 1e-3
+    assert auroc(class_only, correct) > 0.8
+    assert abs(within_class_auroc(class_only, correct, pred) - 0.5) < 0.05
+    # a score that knows which predictions are right scores 1 within each class too
+    assert within_class_auroc(correct.astype(float), correct, pred) == 1.0
+    # hand computed: class A one pair (right above wrong), class B two pairs, one inverted
+    s = np.array([0.9, 0.1, 0.2, 0.8, 0.7])
+    ok = np.array([True, False, True, False, False])
+    cls = np.array([True, True, False, False, False])
+    assert math.isclose(within_class_auroc(s, ok, cls), (1 * 1 + 0 * 2) / 3)
+    assert math.isnan(within_class_auroc(s, np.ones(5, bool), cls))
 
 
 def test_classification_metrics_combines_fscore_auroc_and_ap():

@@ -30,7 +30,7 @@ from w2e_ros.core.config import LEARNABILITY_SELECTIONS, ExploreConfig
 from w2e_ros.core.data import InteractionData
 from w2e_ros.core.evaluate import evaluation_instances
 from w2e_ros.core.finetune import W2EExplorer, similarity_is_balanced
-from w2e_ros.core.metrics import auroc, classification_metrics
+from w2e_ros.core.metrics import auroc, classification_metrics, within_class_auroc
 from w2e_ros.core.model import load_model
 from w2e_ros.core.predict import predict_interactions
 from w2e_ros.core.train import replay_data
@@ -63,6 +63,7 @@ def _metrics(aff: np.ndarray, sim: np.ndarray, data: InteractionData) -> dict[st
     out.update(valid_fscore=vm["fscore"], valid_auroc=vm["auroc"], valid_ap=vm["ap"])
     out["simcorr_auroc"] = auroc(sim, (aff > 0.5) == y)
     out["confidence_simcorr_auroc"] = auroc(np.abs(aff - 0.5), (aff > 0.5) == y)  # baseline
+    out["simcorr_within_auroc"] = within_class_auroc(sim, (aff > 0.5) == y, aff > 0.5)
     return out
 
 

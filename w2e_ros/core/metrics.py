@@ -72,6 +72,27 @@ def auroc(scores: np.ndarray, labels: np.ndarray) -> float:
     return float((ranks[y].sum() - n_pos * (n_pos + 1) / 2.0) / (n_pos * n_neg))
 
 
+def within_class_auroc(scores: np.ndarray, correct: np.ndarray,
+                       predicted: np.ndarray) -> float:
+    """AUROC of ``scores`` for ``correct``, counting only pairs of the same ``predicted`` class.
+
+    The similarity's plain AUROC for "the prediction is right" mostly separates the predicted
+    successes (on pull mostly wrong) from the predicted failures (mostly right): the affordance
+    alone knows that. Compared within one predicted class, a score above 0.5 says something
+    the prediction does not, e.g. which of the model's "no"s are successes: what exploring
+    has to find. Pairs are pooled over the classes (weighted by their number of pairs).
+    """
+    s, ok = np.asarray(scores, np.float64), np.asarray(correct, bool)
+    pred = np.asarray(predicted, bool)
+    num = den = 0.0
+    for m in (pred, ~pred):
+        a = auroc(s[m], ok[m])
+        if np.isfinite(a):
+            pairs = float(ok[m].sum()) * float((~ok[m]).sum())
+            num, den = num + a * pairs, den + pairs
+    return num / den if den else float("nan")
+
+
 def average_precision(scores: np.ndarray, labels: np.ndarray) -> float:
     """Average precision (area under the precision-recall step curve); NaN without positives.
 

@@ -48,7 +48,7 @@ from w2e_ros.core.actions import encode_rotation
 from w2e_ros.core.categories import load_categories
 from w2e_ros.core.config import METHODS, ModelConfig, TrainConfig
 from w2e_ros.core.data import InteractionData
-from w2e_ros.core.metrics import auroc, classification_metrics
+from w2e_ros.core.metrics import auroc, classification_metrics, within_class_auroc
 from w2e_ros.core.model import W2EModel, default_device, load_model, save_model
 from w2e_ros.core.predict import predict_interactions
 
@@ -650,6 +650,9 @@ def train(cfg: TrainConfig, data_dir: str | Path, out_dir: str | Path, resume: b
                         title=f"{run_dir.name}: validation on held-out instances")
         log.info("best validation score %.4f at step %d (model.pt)", trainer.best_score,
                  trainer.best_step)
+    if trainer.sim_cats and cfg.calibrate_steps <= 0 and cfg.sim_weight == 0:
+        log.warning("the similarity head was neither trained (--sim-weight 0) nor calibrated "
+                    "(--calibrate-steps 0): its scores are meaningless; run `w2e calibrate`")
     if trainer.sim_cats and cfg.calibrate_steps > 0:
         model, meta = load_model(run_dir / "model.pt", trainer.device)
         before = validator.run(model) if validator is not None else {}
@@ -657,7 +660,8 @@ def train(cfg: TrainConfig, data_dir: str | Path, out_dir: str | Path, resume: b
                                      cfg.seed, balanced=cfg.calibrate_balanced)
         after = validator.run(model) if validator is not None else {}
         for k in ("csim_simcorr_auroc", "novel_simcorr_auroc", "novel_sim_mean",
-                  "novel_confidence_simcorr_auroc"):
+                  "novel_confidence_simcorr_auroc", "novel_simcorr_within_auroc",
+                  "novel_confidence_simcorr_within_auroc"):
             if k in after:
                 stats[f"val_{k}_before"], stats[f"val_{k}"] = before[k], after[k]
         save_model(run_dir / "model.pt", model, {**meta, "calibration": stats})
@@ -779,6 +783,11 @@ class Validator:
             out[f"{g}_simcorr_auroc"] = auroc(sim[m], correct[m])
             # what the similarity must beat: the affordance head's own confidence
             out[f"{g}_confidence_simcorr_auroc"] = auroc(np.abs(aff[m] - 0.5), correct[m])
+            # ... and within one predicted class, where the prediction alone says nothing
+            out[f"{g}_simcorr_within_auroc"] = within_class_auroc(sim[m], correct[m],
+                                                                  aff[m] > 0.5)
+            out[f"{g}_confidence_simcorr_within_auroc"] = within_class_auroc(
+                np.abs(aff[m] - 0.5), correct[m], aff[m] > 0.5)
             out[f"{g}_sim_mean"] = float(sim[m].mean())
         per_cat = [auroc(aff[m], y[m]) for m in self.by_cat.values()]
         out["score"] = float(np.nanmean(per_cat)) if np.isfinite(per_cat).any() else 0.0
