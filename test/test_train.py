@@ -182,7 +182,12 @@ def test_training_on_simulated_interactions_reduces_the_loss(tmp_path):
 
     data = load_training_data(tmp_path / "data", "w2e", "cfw", "push")
     assert data.points.shape[1:] == (2048, 3) and data.success.any()
-    trainer = Trainer(_cfg(clouds_per_batch=3, interactions_per_cloud=16), data, device=CPU)
+    # the default gives every cloud to the affordance head (C_aff only) ...
+    default = Trainer(_cfg(clouds_per_batch=3, interactions_per_cloud=16), data, device=CPU)
+    assert default.next_batch().aff_mask.all()
+    # ... the paper's joint training shares the batch with the other C_sim categories
+    trainer = Trainer(_cfg(clouds_per_batch=3, interactions_per_cloud=16, sim_weight=1.0,
+                           aff_share=0.5), data, device=CPU)
     batch = trainer.next_batch()
     assert batch.aff_mask.any() and (~batch.aff_mask).any()  # C_aff and other C_sim clouds
     first = trainer.train_step(batch)

@@ -15,7 +15,12 @@ import sys
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from w2e_ros.core.config import FINETUNE_MODES, LEARNABILITY_SELECTIONS, ExploreConfig
+from w2e_ros.core.config import (
+    FINETUNE_MODES,
+    LEARNABILITY_SELECTIONS,
+    ExploreConfig,
+    TrainConfig,
+)
 from w2e_ros.core.strategies import STRATEGIES
 
 if TYPE_CHECKING:
@@ -113,11 +118,13 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--weight-decay", type=float, default=1e-5)
     p.add_argument("--sim-loss", default="bce", choices=["bce", "l1"],
                    help="similarity loss to the running accuracy (reference code: bce)")
-    p.add_argument("--aff-share", type=float, default=0.5,
-                   help="share of each batch's clouds from C_aff (w2e)")
-    p.add_argument("--sim-weight", type=float, default=1.0,
-                   help="weight of the similarity loss (w2e; 0: the affordance head alone, "
-                        "for ablations)")
+    p.add_argument("--aff-share", type=float, default=TrainConfig.aff_share,
+                   help="share of each batch's clouds from C_aff (w2e; default %(default)s: "
+                        "all; the paper's joint training: 0.5 with --sim-weight 1)")
+    p.add_argument("--sim-weight", type=float, default=TrainConfig.sim_weight,
+                   help="weight of the joint similarity loss (w2e; default %(default)s: the "
+                        "affordance head alone, the similarity fitted afterwards by "
+                        "--calibrate-steps; the paper's joint training: 1)")
     p.add_argument("--sim-detach-encoder", action="store_true",
                    help="the similarity loss trains its head only, not the shared encoder")
     p.add_argument("--flip-share", type=float, default=0.25,
@@ -149,7 +156,6 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
 def _run_train(a: argparse.Namespace) -> int:
     import math
 
-    from w2e_ros.core.config import TrainConfig
     from w2e_ros.core.data import InteractionData
     from w2e_ros.core.train import load_training_data, run_name, train
 
