@@ -398,6 +398,20 @@ def test_fewshot_spends_the_budget_per_object_over_all_novel_categories():
     with pytest.raises(ValueError, match="mode"):
         fewshot(model, meta, world, ["kettle"], get_strategy("random"), cfg, "push",
                 mode="per-instance", per_category=1)
+    # frozen: the affordance head adapts, the similarity head keeps its calibrated weights;
+    # finetune (the reference): both move
+    for update, sim_moves in (("frozen", False), ("finetune", True)):
+        c = ExploreConfig(**{**cfg.__dict__, "similarity_update": update,
+                             "finetune_steps": 20, "finetune_min_steps": 20})
+        _, ex = fewshot(model, meta, world, ["kettle"], get_strategy("random"), c, "push",
+                        per_category=2)["all"]
+        moved = {name: not torch.equal(p, model.state_dict()[name])
+                 for name, p in ex.model.state_dict().items() if "head" in name}
+        assert any(v for k, v in moved.items() if k.startswith("aff_head")), update
+        assert any(v for k, v in moved.items() if k.startswith("sim_head")) == sim_moves, update
+    with pytest.raises(ValueError, match="similarity update"):
+        fewshot(model, meta, world, ["kettle"], get_strategy("random"),
+                ExploreConfig(similarity_update="sometimes"), "push", per_category=1)
 
 
 def test_cli_explore_defaults_are_the_core_defaults():

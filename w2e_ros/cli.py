@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING
 from w2e_ros.core.config import (
     FINETUNE_MODES,
     LEARNABILITY_SELECTIONS,
+    SIMILARITY_UPDATES,
     ExploreConfig,
     TrainConfig,
 )
@@ -222,6 +223,10 @@ def _add_explore_args(p: argparse.ArgumentParser) -> None:
                         "robot has)")
     p.add_argument("--bar", type=float, default=d.sim_bar,
                    help="mean similarity of an object that ends its exploration (>1: never)")
+    p.add_argument("--similarity-update", default=d.similarity_update,
+                   choices=list(SIMILARITY_UPDATES),
+                   help="finetune: each fit also trains the similarity head on what was "
+                        "explored (the reference); frozen: it stays as calibrated")
 
 
 def _explore_config(a: argparse.Namespace, **kw: object) -> ExploreConfig:
@@ -233,7 +238,7 @@ def _explore_config(a: argparse.Namespace, **kw: object) -> ExploreConfig:
                          encoder_lr_scale=a.encoder_lr_scale,
                          replay_fraction=a.replay_fraction, anchor=a.anchor,
                          use_mask=not a.no_mask,
-                         sim_bar=a.bar, **kw)
+                         sim_bar=a.bar, similarity_update=a.similarity_update, **kw)
 
 
 def _add_fewshot(sub: argparse._SubParsersAction) -> None:

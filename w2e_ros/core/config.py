@@ -92,6 +92,7 @@ class TrainConfig:
 
 
 FINETUNE_MODES = ("heads", "decoder", "all")
+SIMILARITY_UPDATES = ("finetune", "frozen")
 """What few-shot fine-tuning trains: the heads on cached features | also the encoder's
 feature propagation, on cached set-abstraction levels | every weight."""
 LEARNABILITY_SELECTIONS = ("random", "oracle", "confident", "half_success")
@@ -114,6 +115,10 @@ class ExploreConfig:
     # without it, once most objects pass the bar, the rest of the budget goes to the few
     # that never do (measured: 405 of 550 pulls on one table and one switch)
     sim_bar: float = 0.9  # per object: stop exploring it when its mean similarity exceeds it
+    # finetune: each fit also trains the similarity head to the running accuracy on what was
+    # explored (the reference) | frozen: the similarity stays as calibrated (the affordance
+    # head alone adapts)
+    similarity_update: str = "finetune"
     points_per_object: int = 256  # candidate contact points per object and round
     dirs_per_point: int = 8  # candidate (direction, orientation) per point
     use_mask: bool = True  # candidates favour movable points when the cloud has a mask (sim)
