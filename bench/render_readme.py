@@ -45,7 +45,10 @@ def render(doc: dict, combination: str | None = None, budget: int | None = None)
                if any(r["metric"] == m for r in sel)]
     cols = [(m, p) for m in metrics for p in prims]
     methods = list(dict.fromkeys(r["method"] for r in sel))
-    n_seeds = max((r["n_seeds"] for r in sel), default=0)
+    n_seeds = {p: max((r["n_seeds"] for r in sel if r["primitive"] == p), default=0)
+               for p in prims}
+    seeds = (f"{next(iter(n_seeds.values()))} seeds" if len(set(n_seeds.values())) <= 1 else
+             "seeds: " + ", ".join(f"{p} {n}" for p, n in n_seeds.items()))
 
     def get(method: str, m: str, p: str, vs: str | None = None) -> dict | None:
         return next((r for r in sel if r["method"] == method and r["metric"] == m
@@ -53,7 +56,8 @@ def render(doc: dict, combination: str | None = None, budget: int | None = None)
 
     head = "| method | " + " | ".join(f"{NAMES[m]} {p}" for m, p in cols) + " |"
     lines = [f"Combination `{combo}`, budget {budget} interactions per explore object, "
-             f"{n_seeds} exploration seeds; % with 95 % bootstrap intervals "
+             f"{seeds} (exploration seeds, times training seeds where there are "
+             "several); % with 95 % bootstrap intervals "
              "(test observations / objects and seeds resampled).", "", head,
              "|---" * (len(cols) + 1) + "|"]
     for method in methods:
