@@ -16,12 +16,13 @@ from pathlib import Path
 
 import numpy as np
 
+from w2e_ros.core.metrics import fscore
+
 
 def rates(pred: np.ndarray, y: np.ndarray) -> tuple[float, float, float]:
     """(precision, recall, predicted-positive share) at the 0.5 threshold."""
-    a = pred > 0.5
-    tp = float((a & y).sum())
-    return tp / max(a.sum(), 1), tp / max(y.sum(), 1), float(a.mean())
+    f = fscore(pred > 0.5, y)
+    return f["precision"], f["recall"], float(np.mean(pred > 0.5))
 
 
 def main() -> None:

@@ -92,9 +92,11 @@ class TrainConfig:
 
 
 FINETUNE_MODES = ("heads", "decoder", "all")
-SIMILARITY_UPDATES = ("finetune", "frozen")
 """What few-shot fine-tuning trains: the heads on cached features | also the encoder's
 feature propagation, on cached set-abstraction levels | every weight."""
+SIMILARITY_UPDATES = ("finetune", "frozen")
+"""Whether each fit also trains the similarity head on what was explored (the reference)
+or leaves it as calibrated."""
 LEARNABILITY_SELECTIONS = ("random", "oracle", "confident", "half_success")
 """``w2e learnability``: which N pool interactions to fine-tune on: random | the N the model
 gets most wrong (hindsight) | the N it rates most likely to succeed (no labels) | random with

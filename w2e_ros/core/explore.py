@@ -24,7 +24,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from w2e_ros.core.actions import sample_forward, sample_up
-from w2e_ros.core.config import SIMILARITY_UPDATES, ExploreConfig
+from w2e_ros.core.config import ExploreConfig
 from w2e_ros.core.data import InteractionData
 from w2e_ros.core.feasibility import (
     DEFAULT_CHECK,
@@ -34,7 +34,7 @@ from w2e_ros.core.feasibility import (
     approach_clear,
     arm_reachable,
 )
-from w2e_ros.core.finetune import W2EExplorer, similarity_is_balanced
+from w2e_ros.core.finetune import W2EExplorer, similarity_is_balanced, trains_similarity
 from w2e_ros.core.model import W2EModel
 from w2e_ros.core.primitives import Action, TrialResult
 from w2e_ros.core.proposals import DEFAULT_PROPOSAL, ProposalConfig, Proposer
@@ -361,9 +361,7 @@ def fewshot(model: W2EModel, meta: dict, world: ExplorationWorld, categories: Se
     """
     if mode not in ("all", "per-category"):
         raise ValueError(f"unknown mode {mode!r} (all | per-category)")
-    if cfg.similarity_update not in SIMILARITY_UPDATES:
-        raise ValueError(f"unknown similarity update {cfg.similarity_update!r} "
-                         f"({' | '.join(SIMILARITY_UPDATES)})")
+    train_sim = trains_similarity(meta, cfg)
     groups = {"all": list(categories)} if mode == "all" else {c: [c] for c in categories}
     aff, sim = tuple(meta.get("aff_categories", ())), tuple(meta.get("sim_categories", ()))
     initial = {k: v.detach().clone() for k, v in model.state_dict().items()}
@@ -372,7 +370,7 @@ def fewshot(model: W2EModel, meta: dict, world: ExplorationWorld, categories: Se
         m = copy.deepcopy(model)
         m.load_state_dict(initial)
         explorer = W2EExplorer(m, cfg, replay, aff, sim,
-                               train_similarity=bool(sim) and cfg.similarity_update != "frozen",
+                               train_similarity=train_sim,
                                balanced_similarity=similarity_is_balanced(meta),
                                seed=cfg.seed)
         targets = explore_targets(cats, per_category)

@@ -31,7 +31,7 @@ import torch
 import torch.nn.functional as F
 
 from w2e_ros.core.actions import encode_rotation
-from w2e_ros.core.config import FINETUNE_MODES, ExploreConfig
+from w2e_ros.core.config import FINETUNE_MODES, SIMILARITY_UPDATES, ExploreConfig
 from w2e_ros.core.data import InteractionData
 from w2e_ros.core.metrics import auroc
 from w2e_ros.core.model import W2EModel
@@ -86,6 +86,16 @@ class Rows:
 def similarity_is_balanced(meta: dict) -> bool:
     """Whether a checkpoint's similarity was calibrated class-balanced (w2e calibrate)."""
     return bool((meta.get("calibration") or {}).get("balanced", False))
+
+
+def trains_similarity(meta: dict, cfg: ExploreConfig) -> bool:
+    """Whether fitting should train the similarity head: only a model with similarity
+    categories has one worth training, and ``similarity_update="frozen"`` keeps it as
+    calibrated."""
+    if cfg.similarity_update not in SIMILARITY_UPDATES:
+        raise ValueError(f"unknown similarity update {cfg.similarity_update!r} "
+                         f"({' | '.join(SIMILARITY_UPDATES)})")
+    return bool(meta.get("sim_categories")) and cfg.similarity_update == "finetune"
 
 
 def balanced_weights(success: np.ndarray) -> np.ndarray:

@@ -29,7 +29,7 @@ from w2e_ros.core.categories import load_categories
 from w2e_ros.core.config import LEARNABILITY_SELECTIONS, ExploreConfig
 from w2e_ros.core.data import InteractionData
 from w2e_ros.core.evaluate import evaluation_instances
-from w2e_ros.core.finetune import W2EExplorer, similarity_is_balanced
+from w2e_ros.core.finetune import W2EExplorer, similarity_is_balanced, trains_similarity
 from w2e_ros.core.metrics import auroc, classification_metrics, within_class_auroc
 from w2e_ros.core.model import load_model
 from w2e_ros.core.predict import predict_interactions
@@ -141,7 +141,7 @@ def run_learnability(cfg: LearnabilityConfig) -> dict:
             ecfg = ExploreConfig(**{**asdict(cfg.explore), "seed": seed})
             explorer = W2EExplorer(m, ecfg, replay, meta.get("aff_categories", ()),
                                    meta.get("sim_categories", ()),
-                                   train_similarity=bool(meta.get("sim_categories")),
+                                   train_similarity=trains_similarity(meta, ecfg),
                                    seed=seed, balanced_similarity=similarity_is_balanced(meta))
             explorer.add_data(pool, rows_sel)
             fit = explorer.fit()
