@@ -3,8 +3,12 @@
 The README's numbers must come from the committed results, not be typed by hand: this
 renders the headline table (mean over seeds with 95 % bootstrap intervals, and the paired
 differences against ``random`` and ``none``) between the ``<!-- benchmark:begin -->`` and
-``<!-- benchmark:end -->`` markers (the largest budget), and the same table at budget N
-between ``<!-- benchmark-bN:begin -->`` and ``<!-- benchmark-bN:end -->``.
+``<!-- benchmark:end -->`` markers (the largest budget; the mean over the combinations when
+the file has several), the same table at budget N between ``<!-- benchmark-bN:begin -->``
+and ``<!-- benchmark-bN:end -->``, for one combination with a ``-<combo>`` suffix
+(``<!-- benchmark-cfw:begin -->``, ``<!-- benchmark-b1-cfw:begin -->``), and the paired
+differences against ``random`` per combination between ``<!-- benchmark-combos:begin -->``
+and ``<!-- benchmark-combos:end -->``.
 ``test/test_readme_results.py`` fails when the README and the JSON disagree.
 
     .venv/bin/python bench/render_readme.py            # rewrite the block
@@ -55,11 +59,20 @@ def render(doc: dict, combination: str | None = None, budget: int | None = None)
                      and r["primitive"] == p and r.get("vs") == vs), None)
 
     head = "| method | " + " | ".join(f"{NAMES[m]} {p}" for m, p in cols) + " |"
-    lines = [f"Combination `{combo}`, budget {budget} interactions per explore object, "
-             f"{seeds} (exploration seeds, times training seeds where there are "
-             "several); % with 95 % bootstrap intervals "
-             "(test observations / objects and seeds resampled).", "", head,
-             "|---" * (len(cols) + 1) + "|"]
+    if combo == "mean":
+        members = next((r.get("combinations") for r in sel if r.get("combinations")), [])
+        normal = any(r.get("ci") == "normal" for r in sel)
+        what = (f"Mean over the combinations {', '.join(f'`{c}`' for c in members)}, budget "
+                f"{budget} interactions per explore object, {seeds} (the fewest of any "
+                "combination); % with 95 % intervals from the combinations' "
+                + ("intervals combined as independent normal errors" if normal else
+                   "bootstrap draws averaged") + ".")
+    else:
+        what = (f"Combination `{combo}`, budget {budget} interactions per explore object, "
+                f"{seeds} (exploration seeds, times training seeds where there are "
+                "several); % with 95 % bootstrap intervals "
+                "(test observations / objects and seeds resampled).")
+    lines = [what, "", head, "|---" * (len(cols) + 1) + "|"]
     for method in methods:
         lines.append(f"| {method} | " + " | ".join(_cell(get(method, m, p)) for m, p in cols)
                      + " |")
@@ -78,15 +91,43 @@ def render(doc: dict, combination: str | None = None, budget: int | None = None)
     return "\n".join(lines)
 
 
-BLOCK = re.compile(r"(<!-- benchmark(?:-b(\d+))?:begin -->)\n.*?\n"
-                   r"(<!-- benchmark(?:-b\d+)?:end -->)", re.S)
+def render_combos(doc: dict, budget: int | None = None) -> str:
+    """Per combination (and their mean): each method's paired difference against random at
+    one budget, F-score and AUROC for push and pull, with the seeds behind each."""
+    rows = doc["rows"]
+    budget = budget if budget is not None else max(r["budget"] for r in rows)
+    combos = sorted({r["combination"] for r in rows}, key=lambda c: (c == "mean", c))
+    cols = [(m, p) for m in ("fscore", "auroc") for p in ("push", "pull")]
+    lines = [f"Paired differences against `random` at budget {budget}, % with 95 % "
+             "intervals (seeds per primitive in brackets after the combination).", "",
+             "| combination | method − random | " + " | ".join(
+                 f"{NAMES[m]} {p}" for m, p in cols) + " |", "|---" * (len(cols) + 2) + "|"]
+    for combo in combos:
+        sel = [r for r in rows if r["combination"] == combo and r["budget"] == budget
+               and r.get("vs") == "random"]
+        n = {p: max((r["n_seeds"] for r in sel if r["primitive"] == p), default=0)
+             for p in ("push", "pull")}
+        label = f"`{combo}` ({n['push']} / {n['pull']})"
+        for method in dict.fromkeys(r["method"] for r in sel):
+            cells = [_cell(next((r for r in sel if r["method"] == method
+                                 and r["metric"] == m and r["primitive"] == p), None), True)
+                     for m, p in cols]
+            lines.append(f"| {label} | {method} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+BLOCK = re.compile(r"(<!-- benchmark(?:-b(\d+))?(?:-(cfw|csr|tfr|tsw|mean|combos))?:begin -->)"
+                   r"\n.*?\n(<!-- benchmark[-\w]*:end -->)", re.S)
 
 
 def rewrite(text: str, doc: dict) -> str:
-    """Every block: ``benchmark`` at the largest budget, ``benchmark-b<N>`` at budget N."""
+    """Every block: ``benchmark`` at the largest budget, ``benchmark-b<N>`` at budget N,
+    a ``-<combo>`` suffix for one combination, ``-combos`` for the per-combination table."""
     def block(m: re.Match) -> str:
         budget = int(m.group(2)) if m.group(2) else None
-        return f"{m.group(1)}\n{render(doc, budget=budget)}\n{m.group(3)}"
+        body = (render_combos(doc, budget) if m.group(3) == "combos" else
+                render(doc, combination=m.group(3), budget=budget))
+        return f"{m.group(1)}\n{body}\n{m.group(4)}"
     return BLOCK.sub(block, text)
 
 

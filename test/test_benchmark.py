@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from w2e_ros import cli
 from w2e_ros.core.benchmark import BenchmarkConfig, summarize
@@ -127,3 +128,48 @@ def test_summarize_merges_runs_made_in_other_processes(tmp_path, capsys):
             np.load(tmp_path / "b" / "predictions_cfw_push.npz") as b:
         assert "pred:oracle|0|1|aff" in z.files
         assert np.array_equal(z["pred:similarity|0|1|aff"], b["pred:similarity|0|1|aff"])
+
+
+def test_mean_over_combinations_averages_draws_and_includes_earlier_summaries(tmp_path, capsys):
+    """The mean over combinations: its value is the mean of theirs; with every member's
+    bootstrap draws the interval comes from the averaged draws (narrower than the members':
+    independent experiments), with a member known only from an earlier summary from the
+    members' intervals as independent errors; a combination given twice is refused."""
+    y = np.random.default_rng(0).random(120) < 0.3
+    _predictions(tmp_path / "a" / "predictions_csr_push.npz", ("none", "random"), y, 1)
+    _predictions(tmp_path / "a" / "predictions_tfr_push.npz", ("none", "random"), y, 2)
+    args = ["benchmark", "--summarize-only", "--primitives", "push", "--seeds", "0",
+            "--budgets", "1", "--bootstrap", "100", "--methods", "none", "random"]
+    assert cli.main([*args, "--out", str(tmp_path / "a")]) == 0
+    rows = json.loads((tmp_path / "a" / "benchmark.json").read_text())["rows"]
+    key = lambda r: (r["combination"], r["method"], r["budget"], r["metric"], r.get("vs"))  # noqa: E731
+    get = {key(r): r for r in rows}
+    m = get[("mean", "random", 1, "auroc", None)]
+    parts = [get[(c, "random", 1, "auroc", None)] for c in ("csr", "tfr")]
+    assert m["mean"] == pytest.approx(np.mean([r["mean"] for r in parts]))
+    assert m["ci"] == "bootstrap" and m["combinations"] == ["csr", "tfr"]
+    assert m["ci_high"] - m["ci_low"] < np.mean([r["ci_high"] - r["ci_low"] for r in parts])
+    assert all("_draws" not in r for r in rows)
+
+    # cfw from an earlier summary (no predictions here): its rows join, the mean's interval
+    # is the normal combination of the three half-widths
+    earlier = tmp_path / "cfw.json"
+    earlier.write_text(json.dumps({"rows": [
+        {"combination": "cfw", "primitive": "push", "method": mth, "budget": 1,
+         "metric": "auroc", "n_seeds": 5, "mean": 0.7, "ci_low": 0.6, "ci_high": 0.8}
+        for mth in ("none", "random")]}))
+    assert cli.main([*args, "--out", str(tmp_path / "a"), "--include-summary",
+                     str(earlier)]) == 0
+    rows = json.loads((tmp_path / "a" / "benchmark.json").read_text())["rows"]
+    get = {key(r): r for r in rows}
+    m = get[("mean", "random", 1, "auroc", None)]
+    assert m["combinations"] == ["cfw", "csr", "tfr"] and m["ci"] == "normal"
+    halves = [0.1] + [(p["ci_high"] - p["ci_low"]) / 2 for p in parts]
+    assert m["ci_high"] - m["mean"] == pytest.approx(np.sqrt(np.sum(np.square(halves))) / 3)
+    assert get[("cfw", "random", 1, "auroc", None)]["source"] == str(earlier)
+    assert "intervals combined as independent" in (tmp_path / "a" / "tables.md").read_text()
+    # a combination both included and in the predictions files: refused
+    earlier.write_text(json.dumps({"rows": [{**get[("csr", "random", 1, "auroc", None)]}]}))
+    assert cli.main([*args, "--out", str(tmp_path / "a"), "--include-summary",
+                     str(earlier)]) == 2
+    assert "include it once" in capsys.readouterr().err

@@ -48,3 +48,38 @@ def test_a_budget_block_renders_that_budget():
     first, second = out.split("<!-- benchmark-b1:begin -->")
     assert f"budget {largest} interactions" in first and "old" not in out
     assert "budget 1 interactions" in second and second.endswith("<!-- benchmark-b1:end -->\nc\n")
+
+
+def test_combination_and_per_combination_blocks():
+    """`-cfw` renders that combination, the plain block the mean over the combinations
+    (saying how its intervals were made), `-combos` one row per combination and method."""
+    sys.path.insert(0, str(ROOT / "bench"))
+    from render_readme import rewrite
+
+    def row(combo, method, prim, metric, mean, vs=None, **kw):
+        return {"combination": combo, "primitive": prim, "method": method, "budget": 5,
+                "metric": metric, "n_seeds": 3 if combo != "cfw" else 10, "mean": mean,
+                "ci_low": mean - 0.01, "ci_high": mean + 0.01, **({"vs": vs} if vs else {}),
+                **kw}
+
+    rows = []
+    for combo, gain in (("cfw", 0.02), ("tsw", 0.04), ("mean", 0.03)):
+        extra = {"combinations": ["cfw", "tsw"], "ci": "normal"} if combo == "mean" else {}
+        for prim in ("push", "pull"):
+            for metric in ("fscore", "auroc"):
+                rows += [row(combo, "random", prim, metric, 0.5, **extra),
+                         row(combo, "similarity", prim, metric, 0.5 + gain, **extra),
+                         row(combo, "similarity", prim, metric, gain, vs="random", **extra)]
+    doc = {"rows": rows}
+    text = ("<!-- benchmark:begin -->\nx\n<!-- benchmark:end -->\n"
+            "<!-- benchmark-cfw:begin -->\nx\n<!-- benchmark-cfw:end -->\n"
+            "<!-- benchmark-combos:begin -->\nx\n<!-- benchmark-combos:end -->\n")
+    mean_block, cfw_block, combos_block = rewrite(text, doc).split(":end -->")[:3]
+    assert "Mean over the combinations `cfw`, `tsw`" in mean_block
+    assert "independent normal errors" in mean_block and "53.0 [52.0, 54.0]" in mean_block
+    assert "Combination `cfw`" in cfw_block and "52.0 [51.0, 53.0]" in cfw_block
+    assert "53.0 [52.0, 54.0]" not in cfw_block
+    lines = [ln for ln in combos_block.splitlines() if ln.startswith("| `")]
+    assert [ln.split(" | ")[0] for ln in lines] == ["| `cfw` (10 / 10)", "| `tsw` (3 / 3)",
+                                                    "| `mean` (3 / 3)"]
+    assert "+4.0 [3.0, 5.0]" in lines[1]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -502,3 +503,46 @@ def test_w2e_calibrate_gives_a_where2act_model_a_similarity_on_its_training_cate
         assert meta["sim_categories"] == meta["aff_categories"] == ["cabinet", "faucet", "window"]
         aff, sim = predict_interactions(model, data, cache=None)
         assert auroc(sim, (aff > 0.5) == data.success) > 0.6  # it ranks its own correctness
+
+
+def test_w2e_calibrate_combo_retargets_a_model_to_a_combination_with_the_same_c_aff(tmp_path):
+    """cfw and csr share C_aff (cabinet): the affordance head is the same, only the
+    similarity's categories change; a combination with another C_aff is refused as typed."""
+    import subprocess
+    import sys
+
+    from w2e_ros.core.model import W2EModel, load_model, save_model
+
+    data = InteractionData.concat([
+        synthetic_data(categories=("cabinet", "faucet", "window"), obs_per_cat=3, per_obs=24,
+                       primitive="pull", seed=1),
+        synthetic_data(categories=("switch", "refrigerator"), obs_per_cat=3, per_obs=24,
+                       primitive="pull", seed=2)])
+    data.save_shard(tmp_path / "train" / "shard-00000.npz")
+    torch.manual_seed(0)
+    src = save_model(tmp_path / "m.pt", W2EModel(SMALL), {"method": "w2e", "combo": "cfw",
+                                                          "primitive": "pull"})
+    before, _ = load_model(src, "cpu")
+
+    def calibrate(combo: str, out: Path) -> subprocess.CompletedProcess:
+        return subprocess.run(
+            [sys.executable, "-m", "w2e_ros.cli", "calibrate", "--model", str(src), "--data",
+             str(tmp_path / "train"), "--out", str(out), "--steps", "50", "--threads", "1",
+             "--combo", combo], capture_output=True, text=True, timeout=300)
+
+    proc = calibrate("csr", tmp_path / "csr.pt")
+    assert proc.returncode == 0, proc.stderr
+    model, meta = load_model(tmp_path / "csr.pt", "cpu")
+    assert meta["combo"] == "csr" and meta["retargeted_from"] == "cfw"
+    assert meta["aff_categories"] == ["cabinet"]
+    assert meta["sim_categories"] == ["cabinet", "switch", "refrigerator"]
+    # fitted on the csr categories' rows only, and the affordance head is untouched
+    assert meta["calibration"]["rows"] == data.select(
+        categories=("cabinet", "switch", "refrigerator")).num_interactions
+    sd, ref = model.state_dict(), before.state_dict()
+    assert all(torch.equal(sd[k], ref[k]) for k in sd if not k.startswith("sim_head."))
+    assert any(not torch.equal(sd[k], ref[k]) for k in sd if k.startswith("sim_head."))
+
+    bad = calibrate("tfr", tmp_path / "tfr.pt")
+    assert bad.returncode == 2 and "C_aff table" in bad.stderr
+    assert not (tmp_path / "tfr.pt").exists()

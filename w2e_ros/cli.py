@@ -470,6 +470,10 @@ def _add_benchmark(sub: argparse._SubParsersAction) -> None:
                    help="with --summarize-only: first copy the runs in these benchmark "
                         "outputs' predictions files into --out (same test set); DIR:m1,m2 "
                         "copies only those methods' runs")
+    p.add_argument("--include-summary", nargs="+", default=[], metavar="JSON",
+                   help="with --summarize-only: add the rows of the combinations in these "
+                        "earlier benchmark.json files (their predictions files are not in "
+                        "--out), e.g. for the mean over all four combinations")
     p.add_argument("--threads", type=int, default=2,
                    help="torch CPU threads (local backend; a Ray task uses one)")
     _add_backend_args(p)
@@ -497,16 +501,17 @@ def _run_benchmark(a: argparse.Namespace) -> int:
         explore_objects=a.explore_objects, test_objects=a.test_objects, validate=a.validate,
         eval_points=a.points, eval_dirs=a.dirs, probe=a.probe, heatmaps=not a.no_heatmaps,
         bootstrap=a.bootstrap, explore=_explore_config(a))
-    if a.merge and not a.summarize_only:
-        print("w2e benchmark: --merge goes with --summarize-only", file=sys.stderr)
+    if (a.merge or a.include_summary) and not a.summarize_only:
+        print("w2e benchmark: --merge and --include-summary go with --summarize-only",
+              file=sys.stderr)
         return 2
     if a.summarize_only:
         try:
             merge_predictions(a.out, a.merge)
+            summarize(a.out, cfg, include=a.include_summary)
         except ValueError as e:
             print(f"w2e benchmark: {e}", file=sys.stderr)
             return 2
-        summarize(a.out, cfg)
     else:
         with _backend(a, 1) as backend:  # local: the runs one after the other
             run_benchmark(cfg, backend=backend)
@@ -591,6 +596,11 @@ def _add_calibrate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--data", required=True, help="its training collection (w2e collect --out)")
     p.add_argument("--out", required=True, help="where to write the calibrated checkpoint")
     p.add_argument("--balanced", action="store_true")
+    p.add_argument("--combo", default=None, choices=["cfw", "csr", "tfr", "tsw"],
+                   help="fit the similarity on another training combination with the same "
+                        "C_aff (cfw / csr share cabinet, tfr / tsw table): a w2e model's "
+                        "affordance head trains on C_aff alone, so the combinations differ "
+                        "only in the similarity (default: the model's own)")
     p.add_argument("--steps", type=int, default=2000)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=2)
@@ -608,6 +618,18 @@ def _run_calibrate(a: argparse.Namespace) -> int:
     torch.set_num_threads(a.threads)
     model, meta = load_model(a.model)
     method, combo = str(meta.get("method", "w2e")), str(meta.get("combo", "cfw"))
+    if a.combo is not None and a.combo != combo:
+        if method != "w2e":
+            raise ValueError(f"{a.model}: --combo retargets w2e models only (this one is "
+                             f"{method}: its affordance head trains on every category of "
+                             f"{combo})")
+        if method_categories(method, a.combo)[0] != method_categories(method, combo)[0]:
+            raise ValueError(
+                f"{a.model}: trained for {combo} (C_aff {method_categories(method, combo)[0][0]})"
+                f"; {a.combo} has C_aff {method_categories(method, a.combo)[0][0]}: train a "
+                f"model for it (w2e train --combo {a.combo})")
+        meta = {**meta, "combo": a.combo, "retargeted_from": combo}
+        combo = a.combo
     aff_cats, sim_cats = method_categories(method, combo)
     if not sim_cats:
         if method != "where2act":

@@ -422,13 +422,50 @@ def _stats(path: Path, cfg: BenchmarkConfig, rng: np.random.Generator) -> list[d
                 n_seeds = sum((method, sd, b) in preds for sd in seeds)
                 base = {"combination": combo, "primitive": prim, "method": method,
                         "budget": b, "metric": metric, "n_seeds": n_seeds}
-                out.append({**base, "mean": point, **_ci(bs)})
+                out.append({**base, "mean": point, **_ci(bs), DRAWS: bs})
                 for ref in REFERENCES:
                     if ref == method or ref not in methods:
                         continue
                     ref_point, ref_bs = stats(ref, b, metric)
                     out.append({**base, "vs": ref, "mean": point - ref_point,
-                                **_ci(bs - ref_bs)})
+                                **_ci(bs - ref_bs), DRAWS: bs - ref_bs})
+    return out
+
+
+DRAWS = "_draws"  # a row's bootstrap values while summarizing; never written
+
+
+def mean_over_combinations(rows: list[dict], combos: list[str]) -> list[dict]:
+    """Rows of the mean over ``combos`` for every (primitive, method, budget, metric, vs)
+    that all of them report.
+
+    The combinations are independent experiments, so the i-th bootstrap draw of each is
+    averaged into the i-th draw of the mean and the interval is taken from those
+    (``ci: bootstrap``). A combination known only from an earlier summary has no draws; the
+    mean then adds the members' intervals as independent normal errors, the half-width
+    sqrt(sum h_i^2) / k from each member's half-width h_i (``ci: normal``)."""
+    groups: dict[tuple, dict[str, dict]] = defaultdict(dict)
+    for r in rows:
+        if r["combination"] in combos:
+            groups[(r["primitive"], r["method"], r["budget"], r["metric"],
+                    r.get("vs"))][r["combination"]] = r
+    out = []
+    for (prim, method, b, metric, vs), members in groups.items():
+        if len(members) != len(combos):
+            continue
+        rs = [members[c] for c in combos]
+        mean = float(np.mean([r["mean"] for r in rs]))
+        draws = [r.get(DRAWS) for r in rs]
+        if all(d is not None for d in draws) and len({len(d) for d in draws}) == 1:
+            ci, how = _ci(np.mean(draws, axis=0)), "bootstrap"
+        else:
+            half = np.sqrt(np.sum([((r["ci_high"] - r["ci_low"]) / 2) ** 2 for r in rs]))
+            ci, how = {"ci_low": mean - half / len(rs), "ci_high": mean + half / len(rs)}, \
+                "normal"
+        out.append({"combination": "mean", "primitive": prim, "method": method, "budget": b,
+                    "metric": metric, "n_seeds": min(r["n_seeds"] for r in rs),
+                    **({"vs": vs} if vs else {}), "mean": mean, **ci, "ci": how,
+                    "combinations": list(combos)})
     return out
 
 
@@ -440,11 +477,14 @@ def _ci(samples: np.ndarray) -> dict[str, float]:
     return {"ci_low": float(lo), "ci_high": float(hi)}
 
 
-def summarize(out: str | Path, cfg: BenchmarkConfig) -> dict:
+def summarize(out: str | Path, cfg: BenchmarkConfig,
+              include: list[str | Path] = ()) -> dict:
     """Statistics of every predictions file in ``out``: benchmark.json, tables.md, curves.
 
-    The mean over combinations averages the per-combination means; its interval averages
-    the per-combination bootstrap draws (combinations are independent experiments)."""
+    ``include``: earlier benchmark.json files whose combinations' rows are taken as they
+    are (their predictions files are elsewhere or gone); a combination present both there
+    and in ``out`` is refused rather than counted twice. With more than one combination,
+    rows ``combination: mean`` hold the mean over them (:func:`mean_over_combinations`)."""
     from w2e_ros.core.viz import metric_curves
 
     out = Path(out)
@@ -452,21 +492,20 @@ def summarize(out: str | Path, cfg: BenchmarkConfig) -> dict:
     rows: list[dict] = []
     for path in sorted(out.glob("predictions_*.npz")):
         rows += _stats(path, cfg, rng)
+    own = {r["combination"] for r in rows}
+    for src in include:
+        taken = [r for r in json.loads(Path(src).read_text())["rows"]
+                 if r["combination"] != "mean"]
+        twice = own & {r["combination"] for r in taken}
+        if twice:
+            raise ValueError(f"{src}: combination {', '.join(sorted(twice))} is also in the "
+                             f"predictions files of {out}: include it once")
+        rows += [{**r, "source": str(src)} for r in taken]
+        own |= {r["combination"] for r in taken}
     combos = sorted({r["combination"] for r in rows})
-    if len(combos) > 1:  # the mean over the combinations
-        groups: dict[tuple, list[dict]] = defaultdict(list)
-        for r in rows:
-            groups[(r["primitive"], r["method"], r["budget"], r["metric"],
-                    r.get("vs"))].append(r)
-        for (prim, method, b, metric, vs), rs in groups.items():
-            if len(rs) == len(combos):
-                rows.append({"combination": "mean", "primitive": prim, "method": method,
-                             "budget": b, "metric": metric, "n_seeds": min(r["n_seeds"]
-                                                                           for r in rs),
-                             **({"vs": vs} if vs else {}),
-                             "mean": float(np.mean([r["mean"] for r in rs])),
-                             "ci_low": float(np.mean([r["ci_low"] for r in rs])),
-                             "ci_high": float(np.mean([r["ci_high"] for r in rs]))})
+    if len(combos) > 1:
+        rows += mean_over_combinations(rows, combos)
+    rows = [{k: v for k, v in r.items() if k != DRAWS} for r in rows]
     doc = {"config": json.loads(json.dumps(asdict(cfg), default=str)), "rows": rows}
     (out / "benchmark.json").write_text(json.dumps(doc, indent=1))
     (out / "tables.md").write_text(benchmark_tables(doc))
@@ -500,6 +539,15 @@ def benchmark_tables(doc: dict) -> str:
                 continue
             budgets = sorted({r["budget"] for r in sel})
             lines += [f"## {combo}, {prim}", ""]
+            if combo == "mean":
+                how = sorted({r.get("ci", "bootstrap") for r in sel})
+                lines += [f"Mean over {', '.join(sel[0].get('combinations', []))}; intervals: "
+                          + " / ".join({"bootstrap": "bootstrap draws averaged over the "
+                                                     "combinations",
+                                        "normal": "the combinations' intervals combined as "
+                                                  "independent normal errors (a member has "
+                                                  "no draws: an included summary)"}[h]
+                                       for h in how) + ".", ""]
             for metric in METRICS:
                 ms = [r for r in sel if r["metric"] == metric and "vs" not in r]
                 if not ms:
