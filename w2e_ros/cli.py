@@ -613,23 +613,18 @@ def _run_calibrate(a: argparse.Namespace) -> int:
     import torch
 
     from w2e_ros.core.model import load_model, save_model
-    from w2e_ros.core.train import calibrate_similarity, load_training_data, method_categories
+    from w2e_ros.core.train import (
+        calibrate_similarity,
+        load_training_data,
+        method_categories,
+        retarget,
+    )
 
     torch.set_num_threads(a.threads)
     model, meta = load_model(a.model)
+    if a.combo is not None:
+        meta = retarget(meta, a.combo, source=a.model)
     method, combo = str(meta.get("method", "w2e")), str(meta.get("combo", "cfw"))
-    if a.combo is not None and a.combo != combo:
-        if method != "w2e":
-            raise ValueError(f"{a.model}: --combo retargets w2e models only (this one is "
-                             f"{method}: its affordance head trains on every category of "
-                             f"{combo})")
-        if method_categories(method, a.combo)[0] != method_categories(method, combo)[0]:
-            raise ValueError(
-                f"{a.model}: trained for {combo} (C_aff {method_categories(method, combo)[0][0]})"
-                f"; {a.combo} has C_aff {method_categories(method, a.combo)[0][0]}: train a "
-                f"model for it (w2e train --combo {a.combo})")
-        meta = {**meta, "combo": a.combo, "retargeted_from": combo}
-        combo = a.combo
     aff_cats, sim_cats = method_categories(method, combo)
     if not sim_cats:
         if method != "where2act":

@@ -75,6 +75,25 @@ def method_categories(method: str, combo: str) -> tuple[tuple[str, ...], tuple[s
     raise ValueError(f"unknown method {method!r}; known: {', '.join(METHODS)}")
 
 
+def retarget(meta: dict, combo: str, source: str = "the model") -> dict:
+    """A w2e checkpoint's metadata for another combination with the same C_aff.
+
+    The affordance head of a w2e model trains on C_aff alone, so cfw / csr (cabinet) and
+    tfr / tsw (table) can share one; what differs is the similarity, which the caller then
+    fits on the new combination's categories (``w2e calibrate --combo``)."""
+    method, own = str(meta.get("method", "w2e")), str(meta.get("combo", "cfw"))
+    if combo == own:
+        return meta
+    if method != "w2e":
+        raise ValueError(f"{source}: only w2e models can be given another combination (a "
+                         f"{method} model's affordance head trains on every category of {own})")
+    have, want = method_categories(method, own)[0][0], method_categories(method, combo)[0][0]
+    if have != want:
+        raise ValueError(f"{source}: trained for {own} (C_aff {have}); {combo} has C_aff "
+                         f"{want}: train a model for it (w2e train --combo {combo})")
+    return {**meta, "combo": combo, "retargeted_from": own}
+
+
 @dataclass
 class Batch:
     """Interactions grouped by cloud, as tensors on the model's device."""
