@@ -13,10 +13,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
+
+RUN_KEY = re.compile(r"_s-?\d+_.*$")  # the _s<seed>_<group> end of a run's key
 
 
 def blocks(steps: list[dict], size: int) -> list[tuple[int, int]]:
@@ -36,7 +39,8 @@ def main() -> None:
     for d in a.dirs:
         f = Path(d) / f"explored_{a.combo}_{a.primitive}.json"
         for key, run in json.loads(f.read_text()).items():
-            method = f"{key.split('_s')[0]} ({Path(d).name})"
+            # keys are <method>_s<seed>_<group>; a method name may hold "_s" itself
+            method = f"{RUN_KEY.sub('', key)} ({Path(d).name})"
             per[method].append(blocks(run["steps"], a.block))
     n_blocks = max(len(b) for runs in per.values() for b in runs)
     print(f"Success of the executed interactions (%), blocks of {a.block}, summed over seeds")
