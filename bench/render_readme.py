@@ -116,7 +116,7 @@ def render_combos(doc: dict, budget: int | None = None) -> str:
     return "\n".join(lines)
 
 
-BLOCK = re.compile(r"(<!-- benchmark(?:-b(\d+))?(?:-(cfw|csr|tfr|tsw|mean|combos))?:begin -->)"
+BLOCK = re.compile(r"(<!-- benchmark(?:-b(\d+))?(?:-([a-z]+))?:begin -->)"
                    r"\n.*?\n(<!-- benchmark[-\w]*:end -->)", re.S)
 
 

@@ -30,6 +30,13 @@ if TYPE_CHECKING:
 Handler = Callable[[argparse.Namespace], int | None]
 
 
+def _combos() -> tuple[str, ...]:
+    """The training combinations of config/categories.yaml (one list for every verb)."""
+    from w2e_ros.core.categories import load_categories
+
+    return tuple(load_categories().combinations)
+
+
 def _add_collect(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "collect", help="run random interactions in the simulator and write training shards",
@@ -106,7 +113,7 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", default=None,
                    help="run directory (default runs/<method>_<combo>_<primitive>)")
     p.add_argument("--method", default="w2e", choices=["w2e", "where2act", "fulldata"])
-    p.add_argument("--combo", default="cfw", choices=["cfw", "csr", "tfr", "tsw"])
+    p.add_argument("--combo", default="cfw", choices=_combos())
     p.add_argument("--primitive", default="push", choices=["push", "pull"])
     p.add_argument("--steps", type=int, default=None,
                    help="most optimizer steps (default 6000; validation may stop earlier)")
@@ -440,7 +447,7 @@ def _add_benchmark(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--train-data", default=None, help="training collection (replay)")
     p.add_argument("--test-data", default=None, help="test-split collection (F-score)")
     p.add_argument("--out", default="results/benchmark")
-    p.add_argument("--combos", nargs="+", default=["cfw", "csr", "tfr", "tsw"])
+    p.add_argument("--combos", nargs="+", default=list(_combos()), choices=_combos())
     p.add_argument("--seeds", nargs="+", type=int, default=[0])
     p.add_argument("--primitives", nargs="+", default=["push", "pull"])
     p.add_argument("--methods", nargs="+", default=["none", "random", "where2act", "nosim",
@@ -596,7 +603,7 @@ def _add_calibrate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--data", required=True, help="its training collection (w2e collect --out)")
     p.add_argument("--out", required=True, help="where to write the calibrated checkpoint")
     p.add_argument("--balanced", action="store_true")
-    p.add_argument("--combo", default=None, choices=["cfw", "csr", "tfr", "tsw"],
+    p.add_argument("--combo", default=None, choices=_combos(),
                    help="fit the similarity on another training combination with the same "
                         "C_aff (cfw / csr share cabinet, tfr / tsw table): a w2e model's "
                         "affordance head trains on C_aff alone, so the combinations differ "
