@@ -168,8 +168,20 @@ def test_mean_over_combinations_averages_draws_and_includes_earlier_summaries(tm
     assert m["ci_high"] - m["mean"] == pytest.approx(np.sqrt(np.sum(np.square(halves))) / 3)
     assert get[("cfw", "random", 1, "auroc", None)]["source"] == str(earlier)
     assert "intervals combined as independent" in (tmp_path / "a" / "tables.md").read_text()
-    # a combination both included and in the predictions files: refused
+    # a run both included and in the predictions files: refused
     earlier.write_text(json.dumps({"rows": [{**get[("csr", "random", 1, "auroc", None)]}]}))
     assert cli.main([*args, "--out", str(tmp_path / "a"), "--include-summary",
                      str(earlier)]) == 2
-    assert "include it once" in capsys.readouterr().err
+    assert "csr push random also in" in capsys.readouterr().err
+    # another method of an included combination joins it (no paired rows: random is a summary)
+    earlier.write_text(json.dumps({"rows": [
+        {"combination": "cfw", "primitive": "push", "method": mth, "budget": 1,
+         "metric": "auroc", "n_seeds": 5, "mean": 0.7, "ci_low": 0.6, "ci_high": 0.8}
+        for mth in ("none", "random")]}))
+    _predictions(tmp_path / "a" / "predictions_cfw_push.npz", ("nosim",), y, 3)
+    assert cli.main([*args[:-2], "none", "random", "nosim", "--out", str(tmp_path / "a"),
+                     "--include-summary", str(earlier)]) == 0
+    rows = json.loads((tmp_path / "a" / "benchmark.json").read_text())["rows"]
+    cfw = {(r["method"], r.get("vs")) for r in rows if r["combination"] == "cfw"}
+    assert {("none", None), ("random", None), ("nosim", None)} <= cfw
+    assert not any(m == "nosim" and vs for m, vs in cfw)

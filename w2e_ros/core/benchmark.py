@@ -482,8 +482,10 @@ def summarize(out: str | Path, cfg: BenchmarkConfig,
     """Statistics of every predictions file in ``out``: benchmark.json, tables.md, curves.
 
     ``include``: earlier benchmark.json files whose combinations' rows are taken as they
-    are (their predictions files are elsewhere or gone); a combination present both there
-    and in ``out`` is refused rather than counted twice. With more than one combination,
+    are (their predictions files are elsewhere or gone); a (combination, primitive, method)
+    present both there and in ``out`` is refused rather than counted twice, so a new method
+    can join a combination whose other runs are known only from the summary (it then has no
+    paired rows against them). With more than one combination,
     rows ``combination: mean`` hold the mean over them (:func:`mean_over_combinations`)."""
     from w2e_ros.core.viz import metric_curves
 
@@ -492,16 +494,17 @@ def summarize(out: str | Path, cfg: BenchmarkConfig,
     rows: list[dict] = []
     for path in sorted(out.glob("predictions_*.npz")):
         rows += _stats(path, cfg, rng)
-    own = {r["combination"] for r in rows}
+    run = lambda r: (r["combination"], r["primitive"], r["method"])  # noqa: E731
+    own = {run(r) for r in rows}
     for src in include:
         taken = [r for r in json.loads(Path(src).read_text())["rows"]
                  if r["combination"] != "mean"]
-        twice = own & {r["combination"] for r in taken}
+        twice = own & {run(r) for r in taken}
         if twice:
-            raise ValueError(f"{src}: combination {', '.join(sorted(twice))} is also in the "
-                             f"predictions files of {out}: include it once")
+            raise ValueError(f"{src}: {', '.join(sorted(' '.join(t) for t in twice))} also "
+                             f"in the predictions files of {out}: include it once")
         rows += [{**r, "source": str(src)} for r in taken]
-        own |= {r["combination"] for r in taken}
+        own |= {run(r) for r in taken}
     combos = sorted({r["combination"] for r in rows})
     if len(combos) > 1:
         rows += mean_over_combinations(rows, combos)
