@@ -36,6 +36,14 @@ def _cell(r: dict | None, signed: bool = False) -> str:
     return f"{v} [{100 * r['ci_low']:.1f}, {100 * r['ci_high']:.1f}]"
 
 
+def _methods(doc: dict, sel: list[dict]) -> list[str]:
+    """The methods of ``sel`` in the order the summary's config lists them (runs merged from
+    several outputs arrive in any order), unlisted ones after."""
+    order = {m: i for i, m in enumerate(doc.get("config", {}).get("methods", []))}
+    found = list(dict.fromkeys(r["method"] for r in sel))
+    return sorted(found, key=lambda m: (order.get(m, len(order)), found.index(m)))
+
+
 def render(doc: dict, combination: str | None = None, budget: int | None = None) -> str:
     """The headline table: every method at the largest budget, one column per (metric,
     primitive), then the paired differences at that budget."""
@@ -48,7 +56,7 @@ def render(doc: dict, combination: str | None = None, budget: int | None = None)
     metrics = [m for m in ("fscore", "auroc", "ap", "success")
                if any(r["metric"] == m for r in sel)]
     cols = [(m, p) for m in metrics for p in prims]
-    methods = list(dict.fromkeys(r["method"] for r in sel))
+    methods = _methods(doc, sel)
     n_seeds = {p: max((r["n_seeds"] for r in sel if r["primitive"] == p), default=0)
                for p in prims}
     seeds = (f"{next(iter(n_seeds.values()))} seeds" if len(set(n_seeds.values())) <= 1 else
@@ -108,7 +116,7 @@ def render_combos(doc: dict, budget: int | None = None) -> str:
         n = {p: max((r["n_seeds"] for r in sel if r["primitive"] == p), default=0)
              for p in ("push", "pull")}
         label = f"`{combo}` ({n['push']} / {n['pull']})"
-        for method in dict.fromkeys(r["method"] for r in sel):
+        for method in _methods(doc, sel):
             cells = [_cell(next((r for r in sel if r["method"] == method
                                  and r["metric"] == m and r["primitive"] == p), None), True)
                      for m, p in cols]

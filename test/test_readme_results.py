@@ -83,3 +83,18 @@ def test_combination_and_per_combination_blocks():
     assert [ln.split(" | ")[0] for ln in lines] == ["| `cfw` (10 / 10)", "| `tsw` (3 / 3)",
                                                     "| `mean` (3 / 3)"]
     assert "+4.0 [3.0, 5.0]" in lines[1]
+
+
+def test_methods_follow_the_summary_config_order():
+    """Runs merged from several outputs arrive in any order; the tables list the methods as
+    the summary's ``--methods`` did."""
+    sys.path.insert(0, str(ROOT / "bench"))
+    from render_readme import render
+
+    rows = [{"combination": "cfw", "primitive": "pull", "method": m, "budget": 5,
+             "metric": "auroc", "n_seeds": 3, "mean": 0.6, "ci_low": 0.5, "ci_high": 0.7}
+            for m in ("fulldata", "random", "odd", "none")]
+    doc = {"rows": rows, "config": {"methods": ["none", "random", "fulldata"]}}
+    names = [ln.split(" | ")[0][2:] for ln in render(doc).splitlines()
+             if ln.startswith("| ") and not ln.startswith("| method")]
+    assert names == ["none", "random", "fulldata", "odd"]
