@@ -185,3 +185,21 @@ def test_mean_over_combinations_averages_draws_and_includes_earlier_summaries(tm
     cfw = {(r["method"], r.get("vs")) for r in rows if r["combination"] == "cfw"}
     assert {("none", None), ("random", None), ("nosim", None)} <= cfw
     assert not any(m == "nosim" and vs for m, vs in cfw)
+
+
+def test_summary_states_the_seeds_its_files_hold(tmp_path):
+    """A --summarize-only call need not repeat --seeds: the tables say which seeds the
+    predictions files hold, not the command's default."""
+    y = np.random.default_rng(0).random(40) < 0.3
+    arrays = {"test:success": y, "test:valid": np.ones_like(y),
+              "test:obs": np.repeat(np.arange(10), 4), "test:category": np.full(40, "door")}
+    for seed in (3, 7):
+        for b in (0, 1):
+            for what in ("aff", "sim"):
+                arrays[f"pred:random|{seed}|{b}|{what}"] = np.random.default_rng(seed).random(40)
+    np.savez(tmp_path / "predictions_cfw_push.npz", **arrays)
+    assert cli.main(["benchmark", "--summarize-only", "--combos", "cfw", "--primitives", "push",
+                     "--budgets", "1", "--bootstrap", "10", "--methods", "random",
+                     "--out", str(tmp_path)]) == 0
+    assert json.loads((tmp_path / "benchmark.json").read_text())["config"]["seeds"] == [3, 7]
+    assert "Seeds [3, 7];" in (tmp_path / "tables.md").read_text()

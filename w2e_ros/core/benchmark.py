@@ -509,7 +509,12 @@ def summarize(out: str | Path, cfg: BenchmarkConfig,
     if len(combos) > 1:
         rows += mean_over_combinations(rows, combos)
     rows = [{k: v for k, v in r.items() if k != DRAWS} for r in rows]
-    doc = {"config": json.loads(json.dumps(asdict(cfg), default=str)), "rows": rows}
+    config = json.loads(json.dumps(asdict(cfg), default=str))
+    found = sorted({int(k.split("|")[1]) for path in out.glob("predictions_*.npz")
+                    for k in np.load(path).files if k.startswith("pred:")})
+    if found:  # what the files hold (a --summarize-only call may not repeat --seeds)
+        config["seeds"] = found
+    doc = {"config": config, "rows": rows}
     (out / "benchmark.json").write_text(json.dumps(doc, indent=1))
     (out / "tables.md").write_text(benchmark_tables(doc))
     main = "mean" if len(combos) > 1 else (combos[0] if combos else "")
