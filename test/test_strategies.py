@@ -84,3 +84,15 @@ def test_similarity_sampled_draws_in_proportion_to_unfamiliarity():
     assert share[1] == pytest.approx(1 / 3, abs=0.03)
     assert share[2] < 0.002
     assert rule.stops_at_bar
+
+
+def test_similarity_mixed_takes_half_least_familiar_half_random():
+    """Over many objects a round is about half each object's least familiar candidate and
+    half spread over the rest (the argmin alone would take only the least familiar)."""
+    rng = np.random.default_rng(0)
+    scored = [Scored(affordance=np.zeros(20), similarity=rng.random(20)) for _ in range(400)]
+    rule = get_strategy("similarity_mixed")
+    picks = rule.select(scored, 200, 1, rng)
+    lowest = np.mean([c == int(np.argmin(scored[o].similarity)) for o, c in picks])
+    assert 0.45 < lowest < 0.65  # half by rank (mostly the lowest) + 1/20 of the random half
+    assert len({o for o, _ in picks}) == 200 and rule.stops_at_bar

@@ -3,7 +3,9 @@
 A strategy ranks every candidate action of every object it may touch (lower key = explore
 first) and the loop takes a round's worth of the best ones over all objects, at most a few
 per object. ``similarity`` is Where2Explore's rule (lowest similarity = least familiar
-geometry), ``similarity_sampled`` draws in proportion to unfamiliarity instead;
+geometry), ``similarity_sampled`` draws in proportion to unfamiliarity instead,
+``similarity_mixed`` takes half its picks as the least familiar of each object and half at
+random (success-rich picks without giving up the spread);
 ``where2act`` / ``nosim`` explore where the affordance is least certain (closest to 0.5),
 with the Where2Act baseline model or with ours; ``confident`` tries the actions the model
 rates most likely to succeed (a baseline: it finds successes, but the ones the model already
@@ -53,6 +55,14 @@ class Strategy:
             # a pull is the model's most confident false positive, again and again
             w = np.clip(1.0 - s.similarity, 1e-6, None)
             return -np.log(rng.random(len(w)) + 1e-12) / w
+        if self.name == "similarity_mixed":
+            # a coin per candidate: heads keys by its similarity rank within the object,
+            # tails by a uniform draw; both keys are uniform over [0, 1), so across objects
+            # about half of a round is each object's least familiar, half random
+            n = len(s.similarity)
+            rank = (np.argsort(np.argsort(s.similarity, kind="stable"), kind="stable")
+                    + rng.random(n)) / max(n, 1)
+            return np.where(rng.random(n) < 0.5, rank, rng.random(n))
         if self.name == "confident":
             return -s.affordance
         if self.name == "oracle":
@@ -88,6 +98,7 @@ class Strategy:
 STRATEGIES: dict[str, Strategy] = {
     "similarity": Strategy("similarity", stops_at_bar=True),
     "similarity_sampled": Strategy("similarity_sampled", stops_at_bar=True),
+    "similarity_mixed": Strategy("similarity_mixed", stops_at_bar=True),
     "where2act": Strategy("where2act"),
     "nosim": Strategy("nosim"),
     "confident": Strategy("confident"),
