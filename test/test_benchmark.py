@@ -81,15 +81,17 @@ def test_paired_interval_sees_a_real_difference_and_none_in_noise(tmp_path):
     assert (tmp_path / "tables.md").exists() and (tmp_path / "metrics_vs_budget.png").exists()
 
 
-def _predictions(path: Path, methods: tuple[str, ...], y: np.ndarray, seed: int) -> None:
+def _predictions(path: Path, methods: tuple[str, ...], y: np.ndarray, seed: int,
+                 run_seeds: tuple[int, ...] = (0,)) -> None:
     rng = np.random.default_rng(seed)
     arrays = {"test:success": y, "test:valid": np.ones_like(y),
               "test:obs": np.repeat(np.arange(len(y) // 4), 4),
               "test:category": np.full(len(y), "door")}
     for m in methods:
-        for b in (0, 1):
-            arrays[f"pred:{m}|0|{b}|aff"] = rng.random(len(y))
-            arrays[f"pred:{m}|0|{b}|sim"] = rng.random(len(y))
+        for s in run_seeds:
+            for b in (0, 1):
+                arrays[f"pred:{m}|{s}|{b}|aff"] = rng.random(len(y))
+                arrays[f"pred:{m}|{s}|{b}|sim"] = rng.random(len(y))
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savez(path, **arrays)
 
@@ -191,13 +193,7 @@ def test_summary_states_the_seeds_its_files_hold(tmp_path):
     """A --summarize-only call need not repeat --seeds: the tables say which seeds the
     predictions files hold, not the command's default."""
     y = np.random.default_rng(0).random(40) < 0.3
-    arrays = {"test:success": y, "test:valid": np.ones_like(y),
-              "test:obs": np.repeat(np.arange(10), 4), "test:category": np.full(40, "door")}
-    for seed in (3, 7):
-        for b in (0, 1):
-            for what in ("aff", "sim"):
-                arrays[f"pred:random|{seed}|{b}|{what}"] = np.random.default_rng(seed).random(40)
-    np.savez(tmp_path / "predictions_cfw_push.npz", **arrays)
+    _predictions(tmp_path / "predictions_cfw_push.npz", ("random",), y, 1, run_seeds=(3, 7))
     assert cli.main(["benchmark", "--summarize-only", "--combos", "cfw", "--primitives", "push",
                      "--budgets", "1", "--bootstrap", "10", "--methods", "random",
                      "--out", str(tmp_path)]) == 0

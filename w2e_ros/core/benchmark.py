@@ -494,7 +494,9 @@ def summarize(out: str | Path, cfg: BenchmarkConfig,
     rows: list[dict] = []
     for path in sorted(out.glob("predictions_*.npz")):
         rows += _stats(path, cfg, rng)
-    run = lambda r: (r["combination"], r["primitive"], r["method"])  # noqa: E731
+    def run(r: dict) -> tuple[str, str, str]:
+        return r["combination"], r["primitive"], r["method"]
+
     own = {run(r) for r in rows}
     for src in include:
         taken = [r for r in json.loads(Path(src).read_text())["rows"]
@@ -510,10 +512,12 @@ def summarize(out: str | Path, cfg: BenchmarkConfig,
         rows += mean_over_combinations(rows, combos)
     rows = [{k: v for k, v in r.items() if k != DRAWS} for r in rows]
     config = json.loads(json.dumps(asdict(cfg), default=str))
-    found = sorted({int(k.split("|")[1]) for path in out.glob("predictions_*.npz")
-                    for k in np.load(path).files if k.startswith("pred:")})
+    found: set[int] = set()
+    for path in out.glob("predictions_*.npz"):
+        with np.load(path) as z:  # the file's index only, no arrays read
+            found |= {int(k.split("|")[1]) for k in z.files if k.startswith("pred:")}
     if found:  # what the files hold (a --summarize-only call may not repeat --seeds)
-        config["seeds"] = found
+        config["seeds"] = sorted(found)
     doc = {"config": config, "rows": rows}
     (out / "benchmark.json").write_text(json.dumps(doc, indent=1))
     (out / "tables.md").write_text(benchmark_tables(doc))

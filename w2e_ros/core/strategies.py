@@ -5,7 +5,8 @@ first) and the loop takes a round's worth of the best ones over all objects, at 
 per object. ``similarity`` is Where2Explore's rule (lowest similarity = least familiar
 geometry), ``similarity_sampled`` draws in proportion to unfamiliarity instead,
 ``similarity_mixed`` takes half its picks as the least familiar of each object and half at
-random (success-rich picks without giving up the spread);
+random (meant to add successes without losing the spread; measured: an object's own least
+familiar candidate is rarely a success, and the rule ties random);
 ``where2act`` / ``nosim`` explore where the affordance is least certain (closest to 0.5),
 with the Where2Act baseline model or with ours; ``confident`` tries the actions the model
 rates most likely to succeed (a baseline: it finds successes, but the ones the model already
