@@ -116,3 +116,27 @@ def test_pool_selections_pick_what_they_say():
     assert len(few) == 100 and success[few].sum() == success.sum()
     with pytest.raises(ValueError, match="unknown selection"):
         select_pool("best", 4, predicted, success, rng)
+
+
+def test_unfamiliar_selections_use_the_similarity_not_the_labels():
+    import numpy as np
+
+    from w2e_ros.core.learnability import select_pool
+
+    rng = np.random.default_rng(0)
+    predicted, similarity = rng.random(200), rng.random(200)
+    success = rng.random(200) < 0.1
+    least = set(np.argsort(similarity)[:40])
+    assert set(select_pool("unfamiliar", 40, predicted, success, rng, similarity)) == least
+    flipped = select_pool("unfamiliar", 40, predicted, ~success, rng, similarity)
+    assert set(flipped) == least  # labels play no part
+    half = select_pool("unfamiliar_half", 40, predicted, success, rng, similarity)
+    assert len(np.unique(half)) == 40 and set(np.argsort(similarity)[:20]) <= set(half)
+    assert len(set(half) - least) >= 10  # the other half is random, mostly outside
+    fail = select_pool("unfamiliar_failure", 40, predicted, success, rng, similarity)
+    no = np.flatnonzero(predicted <= 0.5)
+    assert set(fail) == set(no[np.argsort(similarity[no])[:40]])
+    doubt = select_pool("uncertain_failure", 40, predicted, success, rng)
+    assert set(doubt) == set(no[np.argsort(-predicted[no])[:40]])
+    with pytest.raises(ValueError, match="needs the pool's similarity"):
+        select_pool("unfamiliar", 4, predicted, success, rng)

@@ -96,3 +96,17 @@ def test_similarity_mixed_takes_half_least_familiar_half_random():
     lowest = np.mean([c == int(np.argmin(scored[o].similarity)) for o, c in picks])
     assert 0.45 < lowest < 0.65  # half by rank (mostly the lowest) + 1/20 of the random half
     assert len({o for o, _ in picks}) == 200 and rule.stops_at_bar
+
+
+def test_failure_rules_look_only_at_predicted_failures_first():
+    """similarity_failure: the least familiar of the predicted failures, however unfamiliar a
+    predicted success is; nosim_failure: the predicted failure nearest 0.5."""
+    aff = np.array([0.9, 0.2, 0.45, 0.1, 0.6])
+    sim = np.array([0.0, 0.3, 0.8, 0.5, 0.1])
+    rng = np.random.default_rng(0)
+    scored = [Scored(affordance=aff, similarity=sim)]
+    assert [c for _, c in get_strategy("similarity_failure").select(scored, 3, 5, rng)] == [1, 3, 2]
+    assert [c for _, c in get_strategy("nosim_failure").select(scored, 3, 5, rng)] == [2, 1, 3]
+    # once the predicted failures are used up, the predicted successes follow
+    assert get_strategy("similarity_failure").select(scored, 5, 5, rng)[3:] == [(0, 0), (0, 4)]
+    assert not get_strategy("similarity_failure").stops_at_bar

@@ -332,7 +332,11 @@ def _add_learnability(sub: argparse._SubParsersAction) -> None:
                    choices=list(LEARNABILITY_SELECTIONS),
                    help="random; oracle: the N the model gets most wrong (hindsight); "
                         "confident: the N it rates most likely to succeed (no labels); "
-                        "half_success: random with half successes (hindsight)")
+                        "half_success: random with half successes (hindsight); "
+                        "unfamiliar: the N lowest similarities (no labels); unfamiliar_half: "
+                        "half of them, half random; unfamiliar_failure: the least familiar "
+                        "of the predicted failures; uncertain_failure: the predicted failures "
+                        "closest to 0.5")
     p.add_argument("--categories", nargs="+", default=None)
     p.add_argument("--references", nargs="+", default=[],
                    help="other checkpoints drawn as lines (e.g. the fulldata model)")

@@ -12,6 +12,14 @@ Two more selections ask WHY the oracle wins. ``confident`` takes the N the base 
 most likely to succeed (no labels: a rule a robot could follow); ``half_success`` draws the N
 at random with half of them successes (hindsight), which separates "the explored set holds
 more successes" from "the explored set holds the model's mistakes".
+
+Three label-free ones screen similarity rules cheaply, all at once rather than in rounds:
+``unfamiliar`` (the N lowest similarities over the whole pool: Where2Explore's rule without the
+bar), ``unfamiliar_half`` (half of them, the other half random: the spread of random with some
+of the similarity's successes) and ``unfamiliar_failure`` (the least familiar of the actions the
+model predicts to fail: where an unexpected success, the teaching signal, would hide if the
+similarity knew where the model's "no" is wrong). ``uncertain_failure`` is its control: the
+predicted failures closest to 0.5, the affordance's own doubt without the similarity.
 """
 
 from __future__ import annotations
@@ -20,6 +28,7 @@ import copy
 import json
 import logging
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -68,10 +77,28 @@ def _metrics(aff: np.ndarray, sim: np.ndarray, data: InteractionData) -> dict[st
 
 
 def select_pool(selection: str, n: int, predicted: np.ndarray, success: np.ndarray,
-                rng: np.random.Generator) -> np.ndarray:
+                rng: np.random.Generator, similarity: np.ndarray | None = None) -> np.ndarray:
     """Indices of the ``n`` pool interactions a selection fine-tunes on (sorted), from the
-    base model's ``predicted`` success probability and the pool's labels (hindsight rules)."""
+    base model's ``predicted`` success probability and ``similarity``, and the pool's labels
+    (hindsight rules only)."""
     ok = np.asarray(success, bool)
+    if selection == "uncertain_failure":  # the control: predicted failures closest to 0.5
+        p = np.asarray(predicted, np.float64)
+        key = -p + 2.0 * (p > 0.5) + rng.random(len(ok)) * 1e-9
+        return np.sort(np.argsort(key, kind="stable")[:n])
+    if selection.startswith("unfamiliar"):
+        if similarity is None:
+            raise ValueError(f"selection {selection!r} needs the pool's similarity")
+        key = np.asarray(similarity, np.float64) + rng.random(len(ok)) * 1e-6
+        if selection == "unfamiliar_failure":  # predicted failures first, least familiar first
+            key = key + 2.0 * (np.asarray(predicted) > 0.5)
+        order = np.argsort(key, kind="stable")
+        if selection != "unfamiliar_half":
+            return np.sort(order[:n])
+        first = order[:n // 2]
+        rest = np.setdiff1d(np.arange(len(ok)), first)
+        return np.sort(np.concatenate([first, rng.choice(rest, size=n - len(first),
+                                                         replace=False)]))
     if selection == "random":
         rows = rng.choice(len(ok), size=n, replace=False)
     elif selection in ("oracle", "confident"):  # most wrong / most likely first, ties random
@@ -113,7 +140,7 @@ def run_learnability(cfg: LearnabilityConfig) -> dict:
     if cfg.replay_data:
         replay = replay_data(InteractionData.load(cfg.replay_data), meta, prim)
     base_aff, base_sim = predict_interactions(model, test)
-    pool_aff, _ = predict_interactions(model, pool)
+    pool_aff, pool_sim = predict_interactions(model, pool)
     log.info("%s: pool %d interactions (%.1f%% positive) on %d clouds, test %d (%.1f%% "
              "positive)", prim, pool.num_interactions, 100 * pool.positive_rate(),
              pool.num_observations, test.num_interactions, 100 * test.positive_rate())
@@ -131,11 +158,16 @@ def run_learnability(cfg: LearnabilityConfig) -> dict:
     for j, (sel, seed, n) in enumerate(jobs):
         t0 = time.perf_counter()
         n_eff = min(n, pool.num_interactions)
+        picked: dict[str, float] = {}
         if n_eff == 0:
             aff, sim, fit = base_aff, base_sim, {}
         else:
             rows_sel = select_pool(sel, n_eff, pool_aff, pool.success,
-                                   np.random.default_rng(seed))
+                                   np.random.default_rng(seed), pool_sim)
+            # what the selection holds: successes, and how many the base model called failures
+            ok = pool.success[rows_sel].astype(bool)
+            picked = {"picked_success": float(ok.mean()),
+                      "picked_unexpected": float((ok & (pool_aff[rows_sel] <= 0.5)).mean())}
             m = copy.deepcopy(model)
             m.load_state_dict(initial)
             ecfg = ExploreConfig(**{**asdict(cfg.explore), "seed": seed})
@@ -149,6 +181,7 @@ def run_learnability(cfg: LearnabilityConfig) -> dict:
         row = {"primitive": prim, "selection": sel, "seed": seed, "n": n_eff,
                **_metrics(aff, sim, test),
                **{k: fit[k] for k in ("fit_acc", "fit_auroc", "fit_steps") if k in fit},
+               **picked,
                "seconds": time.perf_counter() - t0}
         rows.append(row)
         rows_f.write(json.dumps(row) + "\n")
@@ -201,11 +234,36 @@ def run_per_category(cfg: LearnabilityConfig) -> dict:
     return summary
 
 
+def _paired_lines(rows: list[dict], selections: Sequence[str]) -> list[str]:
+    """Each selection minus random at the same (seed, N): the seed fixes the fine-tuning's
+    randomness, so the difference is the selection's own, and its spread is over seeds."""
+    if "random" not in selections or len(selections) < 2:
+        return []
+    ref = {(r["seed"], r["n"]): r for r in rows if r["selection"] == "random"}
+    lines = ["", "Paired against random (same seed and N): mean ± std over seeds, "
+             "in points.", "", "| selection | N | seeds | F-score | AUROC | AP |",
+             "|---|---|---|---|---|---|"]
+    for sel in selections:
+        if sel == "random":
+            continue
+        for n in sorted({r["n"] for r in rows if r["selection"] == sel and r["n"]}):
+            pairs = [(r, ref[(r["seed"], n)]) for r in rows
+                     if r["selection"] == sel and r["n"] == n and (r["seed"], n) in ref]
+            if not pairs:
+                continue
+            cells = []
+            for m in ("fscore", "auroc", "ap"):
+                d = 100 * np.array([a[m] - b[m] for a, b in pairs])
+                cells.append(f"{d.mean():+.1f} ± {d.std():.1f}")
+            lines.append(f"| {sel} | {n} | {len(pairs)} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def _summarize(rows: list[dict], refs: dict, cfg: LearnabilityConfig, prim: str) -> dict:
     from w2e_ros.core.viz import learnability_figure
 
     out = Path(cfg.out)
-    metrics = ("fscore", "auroc", "ap", "valid_auroc", "simcorr_auroc")
+    metrics = ("fscore", "auroc", "ap", "valid_auroc", "simcorr_auroc", "picked_success")
     summary: dict = {"primitive": prim, "references": refs, "curves": {}}
     lines = [f"# Learnability ({prim})", "",
              f"Fine-tuned on N pool interactions ({cfg.explore.finetune} fine-tuning), judged "
@@ -217,8 +275,8 @@ def _summarize(rows: list[dict], refs: dict, cfg: LearnabilityConfig, prim: str)
         curve = {}
         for n in sorted({r["n"] for r in rows if r["selection"] == sel}):
             rs = [r for r in rows if r["selection"] == sel and r["n"] == n]
-            curve[n] = {m: (float(np.nanmean([r[m] for r in rs])),
-                            float(np.nanstd([r[m] for r in rs]))) for m in metrics}
+            curve[n] = {m: (float(np.nanmean([r.get(m, np.nan) for r in rs])),
+                            float(np.nanstd([r.get(m, np.nan) for r in rs]))) for m in metrics}
             lines.append(f"| {sel} | {n} | " + " | ".join(
                 f"{100 * curve[n][m][0]:.1f} ± {100 * curve[n][m][1]:.1f}" for m in metrics)
                 + " |")
@@ -226,6 +284,7 @@ def _summarize(rows: list[dict], refs: dict, cfg: LearnabilityConfig, prim: str)
     for name, v in refs.items():
         lines.append(f"| {name} (reference) | - | " + " | ".join(
             f"{100 * v[m]:.1f}" for m in metrics) + " |")
+    lines += _paired_lines(rows, cfg.selections)
     (out / "learnability.md").write_text("\n".join(lines) + "\n")
     (out / "learnability.json").write_text(json.dumps(summary, indent=1))
     learnability_figure(summary, out / f"learnability_{prim}.png")

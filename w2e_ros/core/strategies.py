@@ -7,6 +7,9 @@ geometry), ``similarity_sampled`` draws in proportion to unfamiliarity instead,
 ``similarity_mixed`` takes half its picks as the least familiar of each object and half at
 random (meant to add successes without losing the spread; measured: an object's own least
 familiar candidate is rarely a success, and the rule ties random);
+``similarity_failure`` takes the least familiar of the actions the model predicts to fail
+(where a success it did not expect would teach it), spending the whole budget (no bar), and
+``nosim_failure`` is its control without the similarity (the predicted failures nearest 0.5);
 ``where2act`` / ``nosim`` explore where the affordance is least certain (closest to 0.5),
 with the Where2Act baseline model or with ours; ``confident`` tries the actions the model
 rates most likely to succeed (a baseline: it finds successes, but the ones the model already
@@ -64,6 +67,13 @@ class Strategy:
             rank = (np.argsort(np.argsort(s.similarity, kind="stable"), kind="stable")
                     + rng.random(n)) / max(n, 1)
             return np.where(rng.random(n) < 0.5, rank, rng.random(n))
+        if self.name == "similarity_failure":
+            # the least familiar of the actions the model predicts to fail: the teaching
+            # signal is a success the model did not expect, and the similarity's own low
+            # scores fall mostly on predicted successes (its class prior), which it skips
+            return s.similarity + 2.0 * (s.affordance > 0.5)
+        if self.name == "nosim_failure":  # its control: the predicted failures nearest 0.5
+            return -s.affordance + 2.0 * (s.affordance > 0.5)
         if self.name == "confident":
             return -s.affordance
         if self.name == "oracle":
@@ -100,6 +110,8 @@ STRATEGIES: dict[str, Strategy] = {
     "similarity": Strategy("similarity", stops_at_bar=True),
     "similarity_sampled": Strategy("similarity_sampled", stops_at_bar=True),
     "similarity_mixed": Strategy("similarity_mixed", stops_at_bar=True),
+    "similarity_failure": Strategy("similarity_failure"),
+    "nosim_failure": Strategy("nosim_failure"),
     "where2act": Strategy("where2act"),
     "nosim": Strategy("nosim"),
     "confident": Strategy("confident"),
