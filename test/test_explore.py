@@ -427,3 +427,14 @@ def test_cli_explore_defaults_are_the_core_defaults():
                  ["learnability", "--model", "m.pt", "--pool-data", "p", "--test-data", "t"]):
         got = asdict(cli._explore_config(parser.parse_args(argv)))
         assert got == asdict(ExploreConfig()), argv[0]
+
+
+def test_cli_round_flags_reach_the_loop():
+    """``--round-size`` and ``--per-object-per-round`` set the loop's rounds (one round of the
+    whole budget, from the base model, is a protocol the research log measured)."""
+    from w2e_ros import cli
+
+    a = cli.build_parser().parse_args(["benchmark", "--round-size", "275",
+                                       "--per-object-per-round", "5"])
+    cfg = cli._explore_config(a)
+    assert (cfg.round_size, cfg.per_object_per_round) == (275, 5)

@@ -193,6 +193,14 @@ def _run_train(a: argparse.Namespace) -> int:
     return 0
 
 
+def _at_least_one(text: str) -> int:
+    """argparse type: a round that may take nothing from any object would explore nothing."""
+    n = int(text)
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {n}")
+    return n
+
+
 def _add_explore_args(p: argparse.ArgumentParser) -> None:
     """The few-shot loop's settings, shared by ``fewshot`` and ``benchmark``; the defaults are
     ExploreConfig's, so the CLI, the nodes and the core agree."""
@@ -202,6 +210,8 @@ def _add_explore_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dirs", type=int, default=d.dirs_per_point, help="candidate actions per point")
     p.add_argument("--round-size", type=int, default=d.round_size,
                    help="interactions per round between model updates (0: objects / 2)")
+    p.add_argument("--per-object-per-round", type=_at_least_one, default=d.per_object_per_round,
+                   help="most interactions one object may take in one round")
     p.add_argument("--object-cap", type=float, default=d.object_cap,
                    help="most interactions one object may take, as a multiple of the "
                         "budget (0: no cap; the bar can otherwise leave the whole rest of "
@@ -239,7 +249,7 @@ def _add_explore_args(p: argparse.ArgumentParser) -> None:
 def _explore_config(a: argparse.Namespace, **kw: object) -> ExploreConfig:
     return ExploreConfig(points_per_object=a.points, dirs_per_point=a.dirs,
                          round_size=a.round_size, object_cap=a.object_cap,
-                         finetune=a.finetune,
+                         per_object_per_round=a.per_object_per_round, finetune=a.finetune,
                          finetune_steps=a.finetune_steps, finetune_lr=a.finetune_lr,
                          finetune_clouds=a.finetune_clouds,
                          encoder_lr_scale=a.encoder_lr_scale,
