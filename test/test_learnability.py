@@ -59,6 +59,16 @@ def test_learnability_curves_rise_with_the_explored_interactions(setup):
     assert set(summary["curves"]["random"]) == {"0", "12", "144"}
     for f in ("learnability.json", "learnability.md", "learnability_push.png"):
         assert (d / "out" / f).stat().st_size > 0
+    # what each selection held, and the selection paired with random at the same seed and N
+    from w2e_ros.core.data import InteractionData
+    pool_rate = InteractionData.load(str(d / "pool")).select(
+        primitive="push", instances=list(range(30, 40))).positive_rate()
+    assert "picked_success" not in base
+    assert full["picked_success"] == pytest.approx(pool_rate)
+    assert full["picked_unexpected"] <= full["picked_success"]
+    table = (d / "out" / "learnability.md").read_text()
+    diff = 100 * (rows[4]["auroc"] - rows[1]["auroc"])
+    assert "| oracle | 12 | 1 | " in table and f"{diff:+.1f} ± 0.0" in table
 
 
 def test_learnability_refuses_an_empty_pool(setup):
