@@ -234,6 +234,13 @@ def run_per_category(cfg: LearnabilityConfig) -> dict:
     return summary
 
 
+def _mean_std(values: list[float]) -> tuple[float, float]:
+    """Over seeds, NaN where a metric has no value (the picks' success at N = 0)."""
+    v = np.asarray(values, np.float64)
+    v = v[~np.isnan(v)]
+    return (float(v.mean()), float(v.std())) if len(v) else (float("nan"), float("nan"))
+
+
 def _paired_lines(rows: list[dict], selections: Sequence[str]) -> list[str]:
     """Each selection minus random at the same (seed, N), spread over seeds. A rule that is
     deterministic on the fixed pool picks the same N for every seed, so that spread is the
@@ -279,10 +286,10 @@ def _summarize(rows: list[dict], refs: dict, cfg: LearnabilityConfig, prim: str)
         curve = {}
         for n in sorted({r["n"] for r in rows if r["selection"] == sel}):
             rs = [r for r in rows if r["selection"] == sel and r["n"] == n]
-            curve[n] = {m: (float(np.nanmean([r.get(m, np.nan) for r in rs])),
-                            float(np.nanstd([r.get(m, np.nan) for r in rs]))) for m in metrics}
+            curve[n] = {m: _mean_std([r[m] for r in rs if m in r]) for m in metrics}
             lines.append(f"| {sel} | {n} | " + " | ".join(
-                f"{100 * curve[n][m][0]:.1f} ± {100 * curve[n][m][1]:.1f}" for m in metrics)
+                "–" if np.isnan(curve[n][m][0])
+                else f"{100 * curve[n][m][0]:.1f} ± {100 * curve[n][m][1]:.1f}" for m in metrics)
                 + " |")
         summary["curves"][sel] = {str(k): v for k, v in curve.items()}
     for name, v in refs.items():
