@@ -150,3 +150,36 @@ def test_unfamiliar_selections_use_the_similarity_not_the_labels():
     assert set(doubt) == set(no[np.argsort(-predicted[no])[:40]])
     with pytest.raises(ValueError, match="needs the pool's similarity"):
         select_pool("unfamiliar", 4, predicted, success, rng)
+
+
+def test_cli_label_free_selection_picks_predicted_failures(setup):
+    """``w2e learnability --selections random unfamiliar_failure`` as typed: the label-free
+    rule takes the actions the base model predicts to fail first (where a success is one the
+    model did not expect), and the table pairs it with random."""
+    import subprocess
+    import sys
+
+    d = setup
+    out = d / "unfamiliar"
+    r = subprocess.run(
+        [sys.executable, "-m", "w2e_ros.cli", "learnability", "--model", str(d / "model.pt"),
+         "--pool-data", str(d / "pool"), "--test-data", str(d / "test"), "--categories",
+         *NOVEL, "--sizes", "12", "--seeds", "0", "--selections", "random",
+         "unfamiliar_failure", "--finetune-steps", "20", "--anchor", "0", "--threads", "1",
+         "--out", str(out)], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    rows = {row["selection"]: row for row in
+            map(json.loads, (out / "rows.jsonl").read_text().splitlines())}
+    # the base model's predicted failures in the pool: the rule takes all it can of them
+    from w2e_ros.core.data import InteractionData
+    from w2e_ros.core.model import load_model
+    from w2e_ros.core.predict import predict_interactions
+    pool = InteractionData.load(str(d / "pool")).select(primitive="push",
+                                                        instances=list(range(30, 40)))
+    said_no = int((predict_interactions(load_model(str(d / "model.pt"))[0], pool)[0]
+                   <= 0.5).sum())
+    picked = rows["unfamiliar_failure"]
+    assert picked["picked_predicted_failure"] == pytest.approx(min(said_no, 12) / 12)
+    assert 0 < said_no < 12  # this pool: the rule takes them all, then predicted successes
+    assert picked["picked_predicted_failure"] > rows["random"]["picked_predicted_failure"]
+    assert "| unfamiliar_failure | 12 | 1 | " in (out / "learnability.md").read_text()

@@ -164,10 +164,13 @@ def run_learnability(cfg: LearnabilityConfig) -> dict:
         else:
             rows_sel = select_pool(sel, n_eff, pool_aff, pool.success,
                                    np.random.default_rng(seed), pool_sim)
-            # what the selection holds: successes, and how many the base model called failures
+            # what the selection holds: successes, the base model's predicted failures, and
+            # the successes among those (the unexpected ones, the teaching signal)
             ok = pool.success[rows_sel].astype(bool)
+            said_no = pool_aff[rows_sel] <= 0.5
             picked = {"picked_success": float(ok.mean()),
-                      "picked_unexpected": float((ok & (pool_aff[rows_sel] <= 0.5)).mean())}
+                      "picked_predicted_failure": float(said_no.mean()),
+                      "picked_unexpected": float((ok & said_no).mean())}
             m = copy.deepcopy(model)
             m.load_state_dict(initial)
             ecfg = ExploreConfig(**{**asdict(cfg.explore), "seed": seed})
