@@ -110,3 +110,19 @@ def test_failure_rules_look_only_at_predicted_failures_first():
     # once the predicted failures are used up, the predicted successes follow
     assert get_strategy("similarity_failure").select(scored, 5, 5, rng)[3:] == [(0, 0), (0, 4)]
     assert not get_strategy("similarity_failure").stops_at_bar
+
+
+def test_similarity_failure_half_takes_half_by_the_rule_and_half_at_random():
+    """Half of a round: the least familiar predicted failures; the rest random, never a
+    candidate twice and never past an object's limit."""
+    rng = np.random.default_rng(0)
+    scored = [Scored(affordance=rng.random(30), similarity=rng.random(30)) for _ in range(40)]
+    rule = get_strategy("similarity_failure_half")
+    picks = rule.select(scored, 40, 2, rng)
+    assert len(picks) == 40 and len(set(picks)) == 40
+    assert max(np.bincount([o for o, _ in picks])) <= 2
+    first = get_strategy("similarity_failure").select(scored, 20, 2, rng)
+    assert picks[:20] == first
+    # the random half reaches predicted successes, which the rule alone never takes first
+    assert any(scored[o].affordance[c] > 0.5 for o, c in picks[20:])
+    assert all(scored[o].affordance[c] <= 0.5 for o, c in first)

@@ -10,6 +10,7 @@ familiar candidate is rarely a success, and the rule ties random);
 ``similarity_failure`` takes the least familiar of the actions the model predicts to fail
 (where a success it did not expect would teach it), spending the whole budget (no bar), and
 ``nosim_failure`` is its control without the similarity (the predicted failures nearest 0.5);
+``similarity_failure_half`` takes half of each round that way and half at random;
 ``where2act`` / ``nosim`` explore where the affordance is least certain (closest to 0.5),
 with the Where2Act baseline model or with ours; ``confident`` tries the actions the model
 rates most likely to succeed (a baseline: it finds successes, but the ones the model already
@@ -90,6 +91,8 @@ class Strategy:
         if not self.explores:
             raise RuntimeError(f"strategy {self.name!r} does not explore")
         limits = [per_object] * len(scored) if isinstance(per_object, int) else per_object
+        if self.name == "similarity_failure_half":
+            return self._half_and_half(scored, k, limits, rng)
         pool: list[tuple[float, int, int]] = []
         for o, s in enumerate(scored):
             if not len(s.affordance):
@@ -99,6 +102,29 @@ class Strategy:
                 pool.append((float(key[c]), o, int(c)))
         pool.sort(key=lambda t: t[0])
         return [(o, c) for _, o, c in pool[:k]]
+
+    def _half_and_half(self, scored: list[Scored], k: int, limits: Sequence[int],
+                       rng: np.random.Generator) -> list[tuple[int, int]]:
+        """Half of the round by ``similarity_failure``, the rest at random among what is left
+        (the per-object limits hold over both halves): random's class mix, which keeps the
+        fitted head's calibration, plus the similarity's unexpected successes."""
+        first = get_strategy("similarity_failure").select(scored, k // 2, limits, rng)
+        left = list(limits)
+        taken: list[set[int]] = [set() for _ in scored]
+        for o, c in first:
+            left[o] -= 1
+            taken[o].add(c)
+        pool = [(float(rng.random()), o, c) for o, s in enumerate(scored)
+                for c in range(len(s.affordance)) if c not in taken[o]]
+        pool.sort(key=lambda t: t[0])
+        rest: list[tuple[int, int]] = []
+        for _, o, c in pool:
+            if len(rest) == k - len(first):
+                break
+            if left[o] > 0:
+                left[o] -= 1
+                rest.append((o, c))
+        return first + rest
 
     def choose(self, scored: list[Scored], rng: np.random.Generator,
                labels: list[np.ndarray] | None = None) -> tuple[int, int]:
@@ -112,6 +138,7 @@ STRATEGIES: dict[str, Strategy] = {
     "similarity_mixed": Strategy("similarity_mixed", stops_at_bar=True),
     "similarity_failure": Strategy("similarity_failure"),
     "nosim_failure": Strategy("nosim_failure"),
+    "similarity_failure_half": Strategy("similarity_failure_half"),
     "where2act": Strategy("where2act"),
     "nosim": Strategy("nosim"),
     "confident": Strategy("confident"),
