@@ -10,7 +10,8 @@ familiar candidate is rarely a success, and the rule ties random);
 ``similarity_failure`` takes the least familiar of the actions the model predicts to fail
 (where a success it did not expect would teach it), spending the whole budget (no bar), and
 ``nosim_failure`` is its control without the similarity (the predicted failures nearest 0.5);
-``similarity_failure_half`` takes half of each round that way and half at random;
+``similarity_failure_half`` takes half of each round that way and half at random (measured
+on cfw pull: all three tie random or lose to it);
 ``where2act`` / ``nosim`` explore where the affordance is least certain (closest to 0.5),
 with the Where2Act baseline model or with ours; ``confident`` tries the actions the model
 rates most likely to succeed (a baseline: it finds successes, but the ones the model already
