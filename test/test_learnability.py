@@ -80,21 +80,26 @@ def test_learnability_refuses_an_empty_pool(setup):
         run_learnability(cfg)
 
 
-def test_per_category_cli_writes_one_curve_per_category(setup):
-    """``w2e learnability --per-category`` as typed: each category fine-tuned on its own
-    interactions, every category's curve in one table."""
+def _cli(d, out, *args: str) -> None:
+    """``w2e learnability`` as typed, on the synthetic pool and test data, one seed."""
     import subprocess
     import sys
 
-    d = setup
-    out = d / "percat"
     r = subprocess.run(
         [sys.executable, "-m", "w2e_ros.cli", "learnability", "--model", str(d / "model.pt"),
          "--pool-data", str(d / "pool"), "--test-data", str(d / "test"), "--categories",
-         *NOVEL, "--sizes", "0", "1000", "--seeds", "0", "--selections", "random",
-         "--per-category", "--finetune-steps", "40", "--anchor", "0", "--threads", "1",
-         "--out", str(out)], capture_output=True, text=True, timeout=300)
+         *NOVEL, "--seeds", "0", "--anchor", "0", "--threads", "1", *args, "--out", str(out)],
+        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
+
+
+def test_per_category_cli_writes_one_curve_per_category(setup):
+    """``w2e learnability --per-category`` as typed: each category fine-tuned on its own
+    interactions, every category's curve in one table."""
+    d = setup
+    out = d / "percat"
+    _cli(d, out, "--sizes", "0", "1000", "--selections", "random", "--per-category",
+         "--finetune-steps", "40")
     summary = json.loads((out / "per_category.json").read_text())
     assert set(summary["curves"]) == set(NOVEL)
     for c in NOVEL:  # its own pool only: 3 observations x 24 interactions of c
@@ -156,18 +161,10 @@ def test_cli_label_free_selection_picks_predicted_failures(setup):
     """``w2e learnability --selections random unfamiliar_failure`` as typed: the label-free
     rule takes the actions the base model predicts to fail first (where a success is one the
     model did not expect), and the table pairs it with random."""
-    import subprocess
-    import sys
-
     d = setup
     out = d / "unfamiliar"
-    r = subprocess.run(
-        [sys.executable, "-m", "w2e_ros.cli", "learnability", "--model", str(d / "model.pt"),
-         "--pool-data", str(d / "pool"), "--test-data", str(d / "test"), "--categories",
-         *NOVEL, "--sizes", "12", "--seeds", "0", "--selections", "random",
-         "unfamiliar_failure", "--finetune-steps", "20", "--anchor", "0", "--threads", "1",
-         "--out", str(out)], capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0, r.stderr[-2000:]
+    _cli(d, out, "--sizes", "12", "--selections", "random", "unfamiliar_failure",
+         "--finetune-steps", "20")
     rows = {row["selection"]: row for row in
             map(json.loads, (out / "rows.jsonl").read_text().splitlines())}
     # the base model's predicted failures in the pool: the rule takes all it can of them
