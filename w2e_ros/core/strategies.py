@@ -94,15 +94,9 @@ class Strategy:
         limits = [per_object] * len(scored) if isinstance(per_object, int) else per_object
         if self.name == "similarity_failure_half":
             return self._half_and_half(scored, k, limits, rng)
-        pool: list[tuple[float, int, int]] = []
-        for o, s in enumerate(scored):
-            if not len(s.affordance):
-                continue
-            key = self.keys(s, rng, None if labels is None else labels[o])
-            for c in np.argsort(key, kind="stable")[:int(limits[o])]:
-                pool.append((float(key[c]), o, int(c)))
-        pool.sort(key=lambda t: t[0])
-        return [(o, c) for _, o, c in pool[:k]]
+        keys = [self.keys(s, rng, None if labels is None else labels[o]) if len(s.affordance)
+                else np.zeros(0) for o, s in enumerate(scored)]
+        return _lowest(keys, k, limits)
 
     def _half_and_half(self, scored: list[Scored], k: int, limits: Sequence[int],
                        rng: np.random.Generator) -> list[tuple[int, int]]:
@@ -111,26 +105,37 @@ class Strategy:
         fitted head's calibration, plus the similarity's unexpected successes."""
         first = get_strategy("similarity_failure").select(scored, k // 2, limits, rng)
         left = list(limits)
-        taken: list[set[int]] = [set() for _ in scored]
+        free = [np.ones(len(s.affordance), bool) for s in scored]
         for o, c in first:
             left[o] -= 1
-            taken[o].add(c)
-        pool = [(float(rng.random()), o, c) for o, s in enumerate(scored)
-                for c in range(len(s.affordance)) if c not in taken[o]]
-        pool.sort(key=lambda t: t[0])
-        rest: list[tuple[int, int]] = []
-        for _, o, c in pool:
-            if len(rest) == k - len(first):
-                break
-            if left[o] > 0:
-                left[o] -= 1
-                rest.append((o, c))
-        return first + rest
+            free[o][c] = False
+        keys = []  # random keys for what is left; the taken ones can not come again
+        for f in free:
+            key = np.full(len(f), np.inf)
+            key[f] = rng.random(int(f.sum()))
+            keys.append(key)
+        return first + _lowest(keys, k - len(first), left)
 
     def choose(self, scored: list[Scored], rng: np.random.Generator,
                labels: list[np.ndarray] | None = None) -> tuple[int, int]:
         """(object index, candidate index) of the single best action."""
         return self.select(scored, 1, 1, rng, labels)[0]
+
+
+def _lowest(keys: list[np.ndarray], k: int, limits: Sequence[int]) -> list[tuple[int, int]]:
+    """The ``k`` lowest finite keys over all objects, at most ``limits[o]`` from object o,
+    lowest first: a round of one rule, chosen globally."""
+    pool: list[tuple[float, int, int]] = []
+    for o, key in enumerate(keys):
+        for c in np.argsort(key, kind="stable")[:max(int(limits[o]), 0)]:
+            if np.isfinite(key[c]):
+                pool.append((float(key[c]), o, int(c)))
+    pool.sort(key=_first)
+    return [(o, c) for _, o, c in pool[:k]]
+
+
+def _first(t: tuple[float, int, int]) -> float:
+    return t[0]
 
 
 STRATEGIES: dict[str, Strategy] = {
