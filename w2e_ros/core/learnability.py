@@ -42,6 +42,7 @@ from w2e_ros.core.finetune import W2EExplorer, similarity_is_balanced, trains_si
 from w2e_ros.core.metrics import auroc, classification_metrics, within_class_auroc
 from w2e_ros.core.model import load_model
 from w2e_ros.core.predict import predict_interactions
+from w2e_ros.core.strategies import Scored, get_strategy
 from w2e_ros.core.train import replay_data
 
 log = logging.getLogger("w2e.learnability")
@@ -76,22 +77,25 @@ def _metrics(aff: np.ndarray, sim: np.ndarray, data: InteractionData) -> dict[st
     return out
 
 
+LABEL_FREE_RULES = {"unfamiliar": "similarity", "unfamiliar_half": "similarity",
+                    "unfamiliar_failure": "similarity_failure",
+                    "uncertain_failure": "nosim_failure"}
+"""Each label-free selection and the exploration strategy whose ranking it applies (the half
+one takes the other half at random)."""
+
+
 def select_pool(selection: str, n: int, predicted: np.ndarray, success: np.ndarray,
                 rng: np.random.Generator, similarity: np.ndarray | None = None) -> np.ndarray:
     """Indices of the ``n`` pool interactions a selection fine-tunes on (sorted), from the
     base model's ``predicted`` success probability and ``similarity``, and the pool's labels
     (hindsight rules only)."""
     ok = np.asarray(success, bool)
-    if selection == "uncertain_failure":  # the control: predicted failures closest to 0.5
-        p = np.asarray(predicted, np.float64)
-        key = -p + 2.0 * (p > 0.5) + rng.random(len(ok)) * 1e-9
-        return np.sort(np.argsort(key, kind="stable")[:n])
-    if selection.startswith("unfamiliar"):
-        if similarity is None:
+    if selection in LABEL_FREE_RULES:  # the loop's own rule, applied once to the pool
+        if similarity is None and selection != "uncertain_failure":
             raise ValueError(f"selection {selection!r} needs the pool's similarity")
-        key = np.asarray(similarity, np.float64) + rng.random(len(ok)) * 1e-6
-        if selection == "unfamiliar_failure":  # predicted failures first, least familiar first
-            key = key + 2.0 * (np.asarray(predicted) > 0.5)
+        sim = np.zeros(len(ok)) if similarity is None else similarity
+        key = (get_strategy(LABEL_FREE_RULES[selection]).keys(Scored(predicted, sim), rng)
+               + rng.random(len(ok)) * 1e-6)  # ties at random
         order = np.argsort(key, kind="stable")
         if selection != "unfamiliar_half":
             return np.sort(order[:n])
