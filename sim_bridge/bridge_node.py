@@ -201,8 +201,7 @@ class SimBridgeNode(Node):
             else:
                 q = model.sample_start_state(np.random.default_rng(int(e.seed)))
             pose = None
-            o = e.pose.orientation
-            if abs(o.x) + abs(o.y) + abs(o.z) + abs(o.w) > 0:
+            if e.use_pose:
                 try:
                     position, R = from_pose(e.pose)
                 except ValueError as err:
@@ -224,26 +223,34 @@ class SimBridgeNode(Node):
                 self._rebuild_arm()
         loaded = [SceneObject(category=o.model.category, instance=o.model.instance,
                               start_state=[float(v) for v in o.qpos], seed=o.seed,
-                              pose=to_pose(o.pose[:3, 3], o.pose[:3, :3])) for o in built]
+                              use_pose=True, pose=to_pose(o.pose[:3, 3], o.pose[:3, :3]))
+                  for o in built]
         names = ", ".join(f"{o.id}={o.model.name}" for o in built)
         return True, [o.id for o in built], loaded, f"loaded {len(built)} object(s): {names}"
 
     def _layout(self, existing: list[_SceneObject], new: list[_SceneObject]) -> None:
-        """Place objects without a pose side by side along +y, standing on the table (z=0)."""
+        """Place objects without a pose side by side along +y, ``layout_gap`` apart, standing
+        on the table (z = 0); a row laid out in an empty scene is centred on y = 0, so that
+        it stays inside the segmentation's workspace (a row of 6 buckets is 4 m long)."""
         y = -np.inf
         for o in existing:
             b = transform_points(o.pose, o.model.bounds())
             y = max(y, b[:, 1].max())
+        laid = []
         for o in new:
             if o.pose is not None:
                 b = transform_points(o.pose, o.model.bounds())
                 y = max(y, b[:, 1].max())
                 continue
             lo, hi = o.model.bounds()
-            width = hi[1] - lo[1]
             left = 0.0 if not np.isfinite(y) else y + self.settings.layout_gap
             o.pose = make_pose(translation=(0.0, left - lo[1], -lo[2]))
-            y = left + width
+            y = left + hi[1] - lo[1]
+            laid.append(o)
+        if laid and len(laid) == len(new) and not existing:
+            shift = y / 2  # the row spans [0, y]
+            for o in laid:
+                o.pose[1, 3] -= shift
 
     def _view(self) -> tuple[np.ndarray, list[PosedMesh]]:
         """Camera pose and the scene's meshes (objects + table) at the current state."""

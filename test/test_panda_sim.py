@@ -175,7 +175,7 @@ def test_pull_through_the_stack_with_the_simulated_panda_opens_a_drawer(tmp_path
     instance, joint = _drawer_cabinet()
     model = make_object("cabinet", instance)
     closed = [float(lo) for lo, _ in model.joint_limits]
-    pose = np.eye(4)  # a SceneObject's default pose (orientation w = 1) is the identity
+    pose = np.eye(4)  # placed at the identity below (use_pose), not laid out
     world = ObjectWorld(model, [pose])
     base = sim_panda.base_in_front(world.center())
     base_arg = "[" + ", ".join(f"{v:.6f}" for v in base) + "]"
@@ -214,7 +214,8 @@ def test_pull_through_the_stack_with_the_simulated_panda_opens_a_drawer(tmp_path
             cli = node.create_client(LoadScene, "load_scene")
             wait(cli.service_is_ready, 30.0, "load_scene")
             resp = result(cli.call_async(LoadScene.Request(objects=[SceneObject(
-                category="cabinet", instance=instance, start_state=closed)], clear=True)),
+                category="cabinet", instance=instance, start_state=closed, use_pose=True)],
+                clear=True)),
                 60.0, "load_scene")
             assert resp.success, resp.message
             (obj_id,) = resp.object_ids

@@ -50,8 +50,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0,
                    help="the planner's seed (candidate sampling, start states)")
     p.add_argument("--replay-data", default="",
-                   help="training collection the inference node replays while fine-tuning "
-                        "(w2e collect --out; '': the node's default)")
+                   help="what the inference node replays while fine-tuning: a w2e collect "
+                        "or replay-pack directory, shipped (checkpoints/replay_cfw); '': the "
+                        "node's default")
     p.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID of the stack")
     p.add_argument("--quiet-nodes", action="store_true", help="hide the nodes' output")
 
@@ -92,6 +93,12 @@ def _manipulate_each(client, category: str, instances: list[int], primitive: str
     return total
 
 
+def _replay_arg(value: str) -> str:
+    """The inference node's replay_data: ``shipped`` as it is, a directory made absolute
+    (the nodes run in their own working directory)."""
+    return value if value == "shipped" else str(Path(value).resolve())
+
+
 def _interrupt(signum, frame) -> None:
     raise KeyboardInterrupt
 
@@ -119,7 +126,7 @@ def run(a: argparse.Namespace) -> int:
     env = ros_env(domain_id=domain, log_dir=out / "ros_log")
     extra = {"inference": ["-p", f"{a.primitive}_checkpoint:={ckpt.resolve()}",
                            "-p", f"adapted_dir:={(out / 'adapted').resolve()}"]
-             + (["-p", f"replay_data:={Path(a.replay_data).resolve()}"] if a.replay_data
+             + (["-p", f"replay_data:={_replay_arg(a.replay_data)}"] if a.replay_data
                 else []),
              "planner": ["-p", f"exploration_log_dir:={(out / 'exploration').resolve()}",
                          "-p", f"strategy:={a.strategy}", "-p", f"seed:={a.seed}"]}
