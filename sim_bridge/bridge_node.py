@@ -126,8 +126,11 @@ class SimBridgeNode(Node):
         self._next_id = 1
         self._world: ObjectWorld | None = None
         self._camera = None
-        self._rng = np.random.default_rng(self.settings.seed)
         self._dirty = True
+        # bumped by every change of the scene: a frame's random point subset is drawn from
+        # (seed, revision), so the same scene state gives the same cloud however many frames
+        # were published before it (the stack's results then do not depend on timing)
+        self._revision = 0
         if self.settings.robot not in ROBOTS:
             raise ValueError(f"robot must be one of {ROBOTS}, got {self.settings.robot!r}")
         self._live = None  # robot panda: sim_bridge.panda.LiveArm of the current scene
@@ -218,7 +221,7 @@ class SimBridgeNode(Node):
             self._world = (ObjectWorld([o.model for o in self._objects],
                                        [o.pose for o in self._objects])
                            if self._objects else None)
-            self._dirty = True
+            self._changed()
             if self.settings.robot == "panda":
                 self._rebuild_arm()
         loaded = [SceneObject(category=o.model.category, instance=o.model.instance,
@@ -227,6 +230,11 @@ class SimBridgeNode(Node):
                   for o in built]
         names = ", ".join(f"{o.id}={o.model.name}" for o in built)
         return True, [o.id for o in built], loaded, f"loaded {len(built)} object(s): {names}"
+
+    def _changed(self) -> None:
+        """The scene changed (call with the lock held): publish it, with a new revision."""
+        self._dirty = True
+        self._revision += 1
 
     def _layout(self, existing: list[_SceneObject], new: list[_SceneObject]) -> None:
         """Place objects without a pose side by side along +y, ``layout_gap`` apart, standing
@@ -283,6 +291,7 @@ class SimBridgeNode(Node):
                 return None
             pose, meshes = self._view()
             self._dirty = False
+            revision = self._revision
             # stamped when the scene is read, as a camera stamps at exposure: a frame stamped
             # after a trial ended shows the trial's result (the executor's clouds rely on it)
             stamp = self.get_clock().now().to_msg()
@@ -291,7 +300,8 @@ class SimBridgeNode(Node):
         obs = self._camera.capture(meshes, pose)
         idx = np.arange(len(obs.points))
         if 0 < self.settings.max_points < len(idx):
-            idx = np.sort(self._rng.choice(len(idx), self.settings.max_points, replace=False))
+            rng = np.random.default_rng([self.settings.seed, revision])
+            idx = np.sort(rng.choice(len(idx), self.settings.max_points, replace=False))
         return arrays_to_cloud(
             obs.points[idx], obs.normals[idx],
             {"object_id": obs.object_ids[idx].astype(np.int32),
@@ -431,7 +441,7 @@ class SimBridgeNode(Node):
             new = q[offsets[k]:offsets[k + 1]]
             if np.abs(new - o.qpos).max(initial=0.0) > 1e-5:
                 o.qpos = new.copy()
-                self._dirty = True
+                self._changed()
 
     def _publish_arm(self, q: np.ndarray, fingers: np.ndarray, dq: np.ndarray) -> None:
         from sim_bridge.panda import FINGER_JOINTS
@@ -511,7 +521,7 @@ class SimBridgeNode(Node):
             if same:  # the scene was not reloaded meanwhile
                 for k, o in enumerate(objects):
                     o.qpos = q_end[offsets[k]:offsets[k + 1]].copy()
-                self._dirty = True
+                self._changed()
         if feedback is not None:
             feedback(FollowWaypoints.Feedback(waypoint=n, num_waypoints=n))
 

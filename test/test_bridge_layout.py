@@ -110,3 +110,24 @@ def test_objects_added_to_a_scene_go_to_the_right_of_it(nodes):
     assert ok, msg
     (b0,), (b1,) = _bounds(first), _bounds(added)
     assert b1[0, 1] - b0[1, 1] == pytest.approx(bridge.settings.layout_gap, abs=1e-6)
+
+
+def test_the_same_scene_state_gives_the_same_cloud_however_many_frames_came_before(nodes):
+    from w2e_msgs.msg import SceneObject
+
+    from w2e_ros.ros.pointcloud import cloud_to_arrays
+
+    bridge, _ = nodes
+    entries = [SceneObject(category="bucket", instance=i, seed=i) for i in EXPLORE_ROW]
+    clouds = []
+    keep, bridge.settings.max_points = bridge.settings.max_points, 5000  # a subset is drawn
+    try:
+        assert bridge.load(entries, clear=True)[0]
+        clouds.append(cloud_to_arrays(bridge.capture()).points)
+        for _ in range(3):  # frames published meanwhile (how many depends on timing)
+            bridge.capture()
+        clouds.append(cloud_to_arrays(bridge.capture()).points)
+    finally:
+        bridge.settings.max_points = keep
+    assert len(clouds[0]) == 5000
+    np.testing.assert_array_equal(clouds[0], clouds[1])

@@ -99,6 +99,13 @@ def _replay_arg(value: str) -> str:
     return value if value == "shipped" else str(Path(value).resolve())
 
 
+def _per_instance(instances: list[int], result) -> list[dict]:
+    """Each test instance's outcome, so before and after can be paired per instance."""
+    return [{"instance": int(i), "success": bool(o.success), "valid": bool(o.valid),
+             "motion": float(o.motion), "predicted_affordance": float(o.predicted_affordance),
+             "reason": o.reason} for i, o in zip(instances, result.outcomes, strict=True)]
+
+
 def _interrupt(signum, frame) -> None:
     raise KeyboardInterrupt
 
@@ -153,6 +160,7 @@ def run(a: argparse.Namespace) -> int:
         "test_instances": test, "explore_instances": explore, "budget": a.budget,
         "bar": a.bar, "strategy": a.strategy, "seed": a.seed, "replay_data": a.replay_data,
         "success_rate_before": before.success_rate, "success_rate_after": after.success_rate,
+        "before": _per_instance(test, before), "after": _per_instance(test, after),
         "explore": {"ok": explored.success, "message": explored.message,
                     "interactions": explored.interactions_used,
                     "final_mean_similarity": explored.final_mean_similarity,
