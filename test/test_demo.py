@@ -1,0 +1,41 @@
+"""``w2e demo`` as the README's first command runs it: the stack learns a category it never saw.
+
+The default (bucket pull, similarity, seed 0, the shipped checkpoints) is deterministic; on it
+the robot moved 0 of 10 test buckets before exploring and 9 of 10 after 9 interactions. The
+test asserts what the demo exists to show (more test buckets move after exploring than
+before) and that exploring reached every explore bucket: a broken scene layout once stacked
+them in one place, one was never segmented, and the demo showed 0 -> 0.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+
+@pytest.mark.slow
+def test_w2e_demo_as_typed_learns_the_novel_category(tmp_path: Path):
+    w2e = Path(sys.executable).with_name("w2e")
+    out = tmp_path / "demo"
+    env = dict(os.environ, GLIBC_TUNABLES="glibc.malloc.hugetlb=1")
+    r = subprocess.run([str(w2e), "demo", "--out", str(out), "--quiet-nodes"], env=env,
+                       capture_output=True, text=True, timeout=900)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    s = json.loads((out / "summary.json").read_text())
+    assert (s["category"], s["primitive"], s["strategy"]) == ("bucket", "pull", "similarity")
+    assert [o["instance"] for o in s["before"]] == s["test_instances"] == \
+        [o["instance"] for o in s["after"]]
+    assert len(s["test_instances"]) == 10
+    assert "not seen" not in s["explore"]["message"], s["explore"]["message"]
+    assert f"on {len(s['explore_instances'])} object(s)" in s["explore"]["message"]
+    assert s["explore"]["interactions"] >= 1
+    before = sum(o["success"] for o in s["before"])
+    after = sum(o["success"] for o in s["after"])
+    assert after > before, (before, after, s["explore"]["message"])
+    for png in s["heatmaps"]:
+        assert Path(png).stat().st_size > 10_000
