@@ -24,6 +24,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from operator import itemgetter
 
 import numpy as np
 
@@ -41,12 +42,14 @@ class Strategy:
     """A selection rule. ``explores`` False: the loop spends no interaction.
     ``stops_at_bar``: an object stops being explored when its mean similarity passes the
     bar (only meaningful for models whose similarity head was trained).
-    ``needs_labels``: the loop must give hindsight outcomes of the candidates (oracle)."""
+    ``needs_labels``: the loop must give hindsight outcomes of the candidates (oracle).
+    ``half_of``: half of each round by that rule, the rest at random."""
 
     name: str
     explores: bool = True
     stops_at_bar: bool = False
     needs_labels: bool = False
+    half_of: str | None = None
 
     def keys(self, s: Scored, rng: np.random.Generator,
              labels: np.ndarray | None = None) -> np.ndarray:
@@ -92,7 +95,7 @@ class Strategy:
         if not self.explores:
             raise RuntimeError(f"strategy {self.name!r} does not explore")
         limits = [per_object] * len(scored) if isinstance(per_object, int) else per_object
-        if self.name == "similarity_failure_half":
+        if self.half_of:
             return self._half_and_half(scored, k, limits, rng)
         keys = [self.keys(s, rng, None if labels is None else labels[o]) if len(s.affordance)
                 else np.zeros(0) for o, s in enumerate(scored)]
@@ -100,10 +103,10 @@ class Strategy:
 
     def _half_and_half(self, scored: list[Scored], k: int, limits: Sequence[int],
                        rng: np.random.Generator) -> list[tuple[int, int]]:
-        """Half of the round by ``similarity_failure``, the rest at random among what is left
-        (the per-object limits hold over both halves): random's class mix, which keeps the
-        fitted head's calibration, plus the similarity's unexpected successes."""
-        first = get_strategy("similarity_failure").select(scored, k // 2, limits, rng)
+        """Half of the round by ``half_of``, the rest at random among what is left (the
+        per-object limits hold over both halves): random's class mix, which keeps the fitted
+        head's calibration, plus what the rule finds."""
+        first = get_strategy(self.half_of).select(scored, k // 2, limits, rng)
         left = list(limits)
         free = [np.ones(len(s.affordance), bool) for s in scored]
         for o, c in first:
@@ -130,12 +133,8 @@ def _lowest(keys: list[np.ndarray], k: int, limits: Sequence[int]) -> list[tuple
         for c in np.argsort(key, kind="stable")[:max(int(limits[o]), 0)]:
             if np.isfinite(key[c]):
                 pool.append((float(key[c]), o, int(c)))
-    pool.sort(key=_first)
+    pool.sort(key=itemgetter(0))
     return [(o, c) for _, o, c in pool[:k]]
-
-
-def _first(t: tuple[float, int, int]) -> float:
-    return t[0]
 
 
 STRATEGIES: dict[str, Strategy] = {
@@ -144,7 +143,8 @@ STRATEGIES: dict[str, Strategy] = {
     "similarity_mixed": Strategy("similarity_mixed", stops_at_bar=True),
     "similarity_failure": Strategy("similarity_failure"),
     "nosim_failure": Strategy("nosim_failure"),
-    "similarity_failure_half": Strategy("similarity_failure_half"),
+    "similarity_failure_half": Strategy("similarity_failure_half",
+                                        half_of="similarity_failure"),
     "where2act": Strategy("where2act"),
     "nosim": Strategy("nosim"),
     "confident": Strategy("confident"),
