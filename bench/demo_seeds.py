@@ -33,8 +33,8 @@ from w2e_ros.core.metrics import bootstrap_ci
 def run_demo(out: Path, strategy: str, seed: int, extra: list[str]) -> dict:
     """One ``w2e demo`` (skipped when its summary with per-instance outcomes exists)."""
     summary = out / "summary.json"
-    if summary.exists() and "after" in json.loads(summary.read_text()):
-        return json.loads(summary.read_text())
+    if summary.exists() and "after" in (found := json.loads(summary.read_text())):
+        return found
     out.mkdir(parents=True, exist_ok=True)
     cmd = [str(Path(sys.executable).with_name("w2e")), "demo", "--strategy", strategy,
            "--seed", str(seed), "--out", str(out), "--quiet-nodes", *extra]
