@@ -126,11 +126,12 @@ class SimBridgeNode(Node):
         self._next_id = 1
         self._world: ObjectWorld | None = None
         self._camera = None
+        self._framing = None  # (camera pose, table meshes), fixed while the layout is
         self._dirty = True
-        # bumped by every change of the scene: a frame's random point subset is drawn from
-        # (seed, revision), so the same scene state gives the same cloud however many frames
-        # were published before it (the stack's results then do not depend on timing)
-        self._revision = 0
+        # a frame with more hits than max_points keeps the hits of the pixels that rank first
+        # in one fixed random order (from the seed): the same scene state gives the same cloud
+        # however many frames came before, and an object keeps its points when another moves
+        self._pixel_rank: np.ndarray | None = None
         if self.settings.robot not in ROBOTS:
             raise ValueError(f"robot must be one of {ROBOTS}, got {self.settings.robot!r}")
         self._live = None  # robot panda: sim_bridge.panda.LiveArm of the current scene
@@ -221,6 +222,7 @@ class SimBridgeNode(Node):
             self._world = (ObjectWorld([o.model for o in self._objects],
                                        [o.pose for o in self._objects])
                            if self._objects else None)
+            self._framing = self._frame() if self._objects else None
             self._changed()
             if self.settings.robot == "panda":
                 self._rebuild_arm()
@@ -232,9 +234,8 @@ class SimBridgeNode(Node):
         return True, [o.id for o in built], loaded, f"loaded {len(built)} object(s): {names}"
 
     def _changed(self) -> None:
-        """The scene changed (call with the lock held): publish it, with a new revision."""
+        """The scene changed (call with the lock held): publish it."""
         self._dirty = True
-        self._revision += 1
 
     def _layout(self, existing: list[_SceneObject], new: list[_SceneObject]) -> None:
         """Place objects without a pose side by side along +y, ``layout_gap`` apart, standing
@@ -260,28 +261,40 @@ class SimBridgeNode(Node):
             for o in laid:
                 o.pose[1, 3] -= shift
 
-    def _view(self) -> tuple[np.ndarray, list[PosedMesh]]:
-        """Camera pose and the scene's meshes (objects + table) at the current state."""
-        assert self._world is not None
+    def _frame(self) -> tuple[np.ndarray, list[PosedMesh]]:
+        """Camera pose and table of the scene as laid out (call with the lock held).
+
+        Both are framed on the objects' bounds at rest (q = 0), not at their current joint
+        state: framed on the current state, opening one object's part moved the camera and
+        the table, and with them the cloud of every other object in the scene, so what the
+        planner saw of an object depended on when its frame was taken.
+        """
         s = self.settings
-        meshes = self._world.posed_meshes(np.concatenate([o.qpos for o in self._objects]))
-        meshes = [PosedMesh(m.vertices, m.triangles, self._objects[m.object_id].id, m.link_id,
-                            m.movable) for m in meshes]
-        allv = np.concatenate([m.vertices for m in meshes])
-        lo, hi = allv.min(0), allv.max(0)
+        b = np.concatenate([transform_points(o.pose, o.model.bounds()) for o in self._objects])
+        lo, hi = b.min(0), b.max(0)
         center = (lo + hi) / 2
         cam = self._world.settings.camera
         distance = s.camera_distance
         if distance <= 0:  # far enough that the whole row of objects fits in the view
             extent = float(np.linalg.norm(hi - lo))
             distance = max(cam.distance, 1.2 * extent / (2 * np.tan(np.radians(cam.fov_deg) / 2)))
+        table = []
         if s.table:
             margin = 0.3
             half = np.array([(hi[0] - lo[0]) / 2 + margin, (hi[1] - lo[1]) / 2 + margin, 0.025])
             v, t = box_mesh(half)
             v = v + np.array([center[0], center[1], min(lo[2], 0.0) - 0.025])
-            meshes.append(PosedMesh(v, t, TABLE_ID, -1, False))
-        return view_pose(center, s.camera_azimuth_deg, s.camera_elevation_deg, distance), meshes
+            table.append(PosedMesh(v, t, TABLE_ID, -1, False))
+        return view_pose(center, s.camera_azimuth_deg, s.camera_elevation_deg, distance), table
+
+    def _view(self) -> tuple[np.ndarray, list[PosedMesh]]:
+        """Camera pose and the scene's meshes (objects at the current state + table)."""
+        assert self._world is not None and self._framing is not None
+        meshes = self._world.posed_meshes(np.concatenate([o.qpos for o in self._objects]))
+        meshes = [PosedMesh(m.vertices, m.triangles, self._objects[m.object_id].id, m.link_id,
+                            m.movable) for m in meshes]
+        pose, table = self._framing
+        return pose, meshes + table
 
     # -- camera ---------------------------------------------------------------------------
     def capture(self) -> PointCloud2 | None:
@@ -291,7 +304,6 @@ class SimBridgeNode(Node):
                 return None
             pose, meshes = self._view()
             self._dirty = False
-            revision = self._revision
             # stamped when the scene is read, as a camera stamps at exposure: a frame stamped
             # after a trial ended shows the trial's result (the executor's clouds rely on it)
             stamp = self.get_clock().now().to_msg()
@@ -300,8 +312,11 @@ class SimBridgeNode(Node):
         obs = self._camera.capture(meshes, pose)
         idx = np.arange(len(obs.points))
         if 0 < self.settings.max_points < len(idx):
-            rng = np.random.default_rng([self.settings.seed, revision])
-            idx = np.sort(rng.choice(len(idx), self.settings.max_points, replace=False))
+            if self._pixel_rank is None:
+                n = self._camera.settings.width * self._camera.settings.height
+                self._pixel_rank = np.random.default_rng(self.settings.seed).permutation(n)
+            k = self.settings.max_points
+            idx = np.sort(np.argpartition(self._pixel_rank[obs.pixels], k)[:k])
         return arrays_to_cloud(
             obs.points[idx], obs.normals[idx],
             {"object_id": obs.object_ids[idx].astype(np.int32),

@@ -138,6 +138,7 @@ class RaycastCamera:
             movable=lab[gid, 2].astype(bool),
             object_ids=lab[gid, 0].astype(np.int32),
             camera_pose=np.asarray(camera_pose, np.float64),
+            pixels=np.flatnonzero(ok),
         )
 
 
@@ -190,6 +191,7 @@ class SapienCamera:
             movable=lab[:, 2].astype(bool),
             object_ids=lab[:, 0].astype(np.int32),
             camera_pose=np.asarray(camera_pose, np.float64),
+            pixels=np.flatnonzero(ok.ravel()),
         )
 
 

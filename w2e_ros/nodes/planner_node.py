@@ -119,8 +119,9 @@ class PlannerSettings:
     connect_timeout_s: float = param(5.0, "longest wait for a server to appear", min=0.0)
     settle_s: float = param(2.0, "after a fresh frame shows some target objects, how long to "
                             "wait for the others before acting on the visible ones", min=0.0)
-    fresh_after_execute: bool = param(True, "after an interaction, observe the object in a "
-                                      "camera frame taken after it (the part may have moved)")
+    fresh_after_execute: bool = param(True, "after an interaction, observe every object in a "
+                                      "camera frame taken after it (the part may have moved, "
+                                      "and may occlude its neighbours)")
     seed: int = param(0, "seed of the candidate sampling and of the scene start states")
     exploration_log_dir: str = param("", "directory of the exploration sessions' logs (every "
                                      "executed interaction; '': $XDG_DATA_HOME/w2e/exploration,"
@@ -183,6 +184,10 @@ class RosWorld:
         self.run = run  # every executed interaction is appended here before it is used
         self.instance_of = instance_of or {}  # object id -> category instance (logged)
         self.seen_after: dict[int, Time] = {}  # object -> earliest acceptable frame stamp
+        # every object's next frame is taken after the latest interaction, not only after its
+        # own: a frame taken between two interactions of a round shows the scene in a state
+        # that depends on timing, and one object's moved part can occlude another
+        self.latest_interaction: Time | None = None
         self.outcomes: list[InteractionOutcome] = []  # of this call, in execution order
         self.last_cloud: dict[int, ObservedCloud] = {}
 
@@ -191,7 +196,7 @@ class RosWorld:
         segmentation loses after we touched it (moved out of view, occluded) keeps its last
         cloud rather than ending the exploration of every other object."""
         try:
-            msg = self.node.wait_for_objects([target], self.seen_after.get(target),
+            msg = self.node.wait_for_objects([target], self._newer_than(target),
                                              self.s.observe_timeout_s)[target]
         except StackError as exc:
             if int(target) not in self.last_cloud:
@@ -204,11 +209,16 @@ class RosWorld:
         self.last_cloud[int(target)] = cloud
         return cloud
 
+    def _newer_than(self, target: int) -> Time | None:
+        stamps = [t for t in (self.seen_after.get(int(target)), self.latest_interaction)
+                  if t is not None]
+        return max(stamps, key=lambda t: t.nanoseconds) if stamps else None
+
     def execute(self, target: int, action: Action) -> TrialResult:
         outcome = self.node.execute(action_to_interaction(action, object_id=int(target)))
         self.outcomes.append(outcome)
         if self.s.fresh_after_execute:
-            self.seen_after[int(target)] = self.node.get_clock().now()
+            self.latest_interaction = self.node.get_clock().now()
         result = outcome_to_trial_result(outcome)
         if self.run is not None:  # on disk (fsync) before the loop learns from it
             cloud = self.last_cloud[int(target)]  # the cloud the action was chosen on
