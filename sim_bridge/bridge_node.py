@@ -78,8 +78,9 @@ class BridgeSettings:
     frame_id: str = param("world", "frame of the published clouds and of the waypoints")
     publish_rate_hz: float = param(2.0, "camera cloud rate (Hz); 0: publish only on change",
                                    min=0.0)
-    max_points: int = param(30000, "random subset of the camera hits to publish (0: all)",
-                            min=0)
+    max_points: int = param(30000, "most camera hits published per frame: those of the "
+                            "pixels first in one fixed random order, so an object keeps its "
+                            "points when another moves (0: all)", min=0)
     camera_azimuth_deg: float = param(30.0, "camera azimuth around +x (objects face +x)")
     camera_elevation_deg: float = param(30.0, "camera elevation above the table")
     camera_distance: float = param(

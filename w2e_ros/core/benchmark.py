@@ -59,7 +59,8 @@ METHOD_SPEC: dict[str, tuple[str, str]] = {
     "fulldata": ("fulldata", "none"),
 }
 REFERENCES = ("random", "none")  # paired differences are reported against these
-METRICS = ("fscore", "auroc", "ap", "simcorr_auroc", "success")
+# precision and recall at the same 0.5 threshold say which side of the F-score moved
+METRICS = ("fscore", "precision", "recall", "auroc", "ap", "simcorr_auroc", "success")
 
 
 @dataclass
@@ -360,8 +361,8 @@ def _metric(name: str, p: dict[str, np.ndarray], y: np.ndarray, rows: np.ndarray
     if "aff" not in p:
         return float("nan")
     a = p["aff"][rows]
-    if name == "fscore":
-        return fscore(a > 0.5, y[rows])["fscore"]
+    if name in ("fscore", "precision", "recall"):
+        return fscore(a > 0.5, y[rows])[name]
     if name == "auroc":
         return auroc(a, y[rows])
     if name == "ap":
@@ -535,7 +536,8 @@ def benchmark_tables(doc: dict) -> str:
     and the paired differences against random and none."""
     rows = doc["rows"]
     cfg = doc["config"]
-    names = {"fscore": "F-score", "auroc": "AUROC", "ap": "avg precision",
+    names = {"fscore": "F-score", "precision": "precision (at 0.5)",
+             "recall": "recall (at 0.5)", "auroc": "AUROC", "ap": "avg precision",
              "success": "sample success", "simcorr_auroc": "similarity AUROC (correct)"}
     lines = ["# Benchmark", "",
              f"Seeds {cfg['seeds']}; budgets {cfg['budgets']} interactions per explore object "
