@@ -232,3 +232,17 @@ def test_validation_instances_are_neither_explored_nor_test():
     with pytest.raises(ValueError, match="explore fewer"):
         evaluation_instances("kettle", validate=True, explored=len(cats.instances("kettle",
                                                                                "explore")))
+
+
+def test_r_precision_depends_on_the_ranking_not_on_the_threshold():
+    from w2e_ros.core.metrics import fscore, r_precision
+
+    y = np.array([1, 0, 1, 0, 0, 0, 0, 0], bool)
+    s = np.array([0.45, 0.8, 0.3, 0.2, 0.1, 0.1, 0.1, 0.1])
+    assert r_precision(s, y) == 0.5  # the top 2 hold one of the 2 positives
+    lifted = s + 0.1  # a fit that only pushes one more prediction above 0.5
+    assert fscore(lifted > 0.5, y)["fscore"] > fscore(s > 0.5, y)["fscore"]
+    assert r_precision(lifted, y) == r_precision(s, y)
+    assert r_precision(np.where(y, 0.6, 0.4), y) == 1.0
+    assert r_precision(np.full(8, 0.5), y) == 0.25  # all tied: the positive rate
+    assert math.isnan(r_precision(s, np.zeros(8, bool)))

@@ -44,7 +44,7 @@ from w2e_ros.core.evaluate import (
     predict_interactions,
 )
 from w2e_ros.core.explore import fewshot
-from w2e_ros.core.metrics import auroc, average_precision, fscore
+from w2e_ros.core.metrics import auroc, average_precision, fscore, r_precision
 from w2e_ros.core.model import W2EModel, load_model
 from w2e_ros.core.strategies import STRATEGIES, get_strategy
 from w2e_ros.core.train import replay_data
@@ -59,8 +59,12 @@ METHOD_SPEC: dict[str, tuple[str, str]] = {
     "fulldata": ("fulldata", "none"),
 }
 REFERENCES = ("random", "none")  # paired differences are reported against these
-# precision and recall at the same 0.5 threshold say which side of the F-score moved
-METRICS = ("fscore", "precision", "recall", "auroc", "ap", "simcorr_auroc", "success")
+# precision and recall at the same 0.5 threshold say which side of the F-score moved, and
+# "called" how many test interactions the fit puts above 0.5;
+# R-precision is the F-score at the threshold that predicts as many successes as there are
+# (the ranking alone: a fit that only shifts the predictions across 0.5 does not move it)
+METRICS = ("fscore", "precision", "recall", "called", "rprecision", "auroc", "ap",
+           "simcorr_auroc", "success")
 
 
 @dataclass
@@ -367,6 +371,10 @@ def _metric(name: str, p: dict[str, np.ndarray], y: np.ndarray, rows: np.ndarray
         return auroc(a, y[rows])
     if name == "ap":
         return average_precision(a, y[rows])
+    if name == "called":  # the share of test interactions predicted to succeed
+        return float(np.mean(a > 0.5))
+    if name == "rprecision":
+        return r_precision(a, y[rows])
     if name == "simcorr_auroc":
         return auroc(p["sim"][rows], (a > 0.5) == y[rows])
     raise ValueError(name)
@@ -537,7 +545,10 @@ def benchmark_tables(doc: dict) -> str:
     rows = doc["rows"]
     cfg = doc["config"]
     names = {"fscore": "F-score", "precision": "precision (at 0.5)",
-             "recall": "recall (at 0.5)", "auroc": "AUROC", "ap": "avg precision",
+             "recall": "recall (at 0.5)",
+             "called": "predicted successes (share of test interactions above 0.5)",
+             "rprecision": "R-precision (F-score at as many "
+             "predicted successes as there are)", "auroc": "AUROC", "ap": "avg precision",
              "success": "sample success", "simcorr_auroc": "similarity AUROC (correct)"}
     lines = ["# Benchmark", "",
              f"Seeds {cfg['seeds']}; budgets {cfg['budgets']} interactions per explore object "

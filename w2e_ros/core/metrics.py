@@ -109,6 +109,24 @@ def average_precision(scores: np.ndarray, labels: np.ndarray) -> float:
     return float(precision[y].sum() / n_pos)
 
 
+def r_precision(scores: np.ndarray, labels: np.ndarray) -> float:
+    """Precision among the R highest scores, R = the number of positives (there precision =
+    recall = F-score); NaN without positives.
+
+    The F-score at a fixed 0.5 threshold also moves when a fit only shifts how many
+    predictions cross 0.5: with few positives, predicting more of them raises it even at
+    chance precision. R-precision depends on the ranking alone. Ties at the cut share it.
+    """
+    s, y = np.asarray(scores, dtype=np.float64), np.asarray(labels, dtype=bool)
+    r = int(y.sum())
+    if r == 0:
+        return float("nan")
+    cut = np.sort(s)[::-1][r - 1]
+    above, at = s > cut, s == cut
+    tp = y[above].sum() + y[at].mean() * (r - above.sum())  # ties at the cut: their mean
+    return float(tp / r)
+
+
 def classification_metrics(probs: np.ndarray, success: np.ndarray,
                            threshold: float = 0.5) -> dict[str, float]:
     """F-score (with its counts) at ``threshold``, AUROC and average precision."""
