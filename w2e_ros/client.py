@@ -201,13 +201,15 @@ class W2EClient:
 
     def wait_until_ready(self, timeout: float = 60.0, simulator: bool = True) -> bool:
         """True once the planner and inference services (and ``load_scene``) are up."""
+        return not self.missing_services(timeout, simulator)
+
+    def missing_services(self, timeout: float = 60.0, simulator: bool = True) -> list[str]:
+        """The services still not up after waiting ``timeout`` s in all ([]: ready)."""
         deadline = time.monotonic() + timeout
         clients = [self._explore, self._manipulate, self._predict] + (
             [self._scene] if simulator else [])
-        for c in clients:
-            if not c.wait_for_service(timeout_sec=max(0.0, deadline - time.monotonic())):
-                return False
-        return True
+        return [c.srv_name for c in clients
+                if not c.wait_for_service(timeout_sec=max(0.0, deadline - time.monotonic()))]
 
     # --- the user-facing calls --------------------------------------------------------------
     def explore(self, category: str, instances: Iterable[int] = (), primitive: str = "pull",

@@ -25,6 +25,8 @@ from w2e_ros.core.categories import load_categories
 from w2e_ros.core.strategies import STRATEGIES
 from w2e_ros.paths import default_checkpoint
 
+READY_TIMEOUT_S = 180.0  # bring-up: the nodes, then their services
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     cats = load_categories()
@@ -139,10 +141,14 @@ def run(a: argparse.Namespace) -> int:
                          "-p", f"strategy:={a.strategy}", "-p", f"seed:={a.seed}"]}
     print(f"[demo] {a.category} ({a.primitive}), model {ckpt}; test {test}, explore {explore}")
     t_all = time.perf_counter()
+    # a loaded machine (the inference node reading its checkpoints and replay data beside
+    # other jobs) once needed more than 60 s: the services get the same 180 s as the nodes
     with Stack(env=env, extra_args=extra, output=None if a.quiet_nodes else sys.stdout,
-               ready_timeout=180.0), W2EClient(domain_id=domain) as w2e:
-        if not w2e.wait_until_ready(60.0):
-            print("w2e demo: the stack did not come up", file=sys.stderr)
+               ready_timeout=READY_TIMEOUT_S), W2EClient(domain_id=domain) as w2e:
+        if missing := w2e.missing_services(READY_TIMEOUT_S):
+            print(f"w2e demo: the stack did not come up: no {', '.join(missing)} within "
+                  f"{READY_TIMEOUT_S:.0f} s (run without --quiet-nodes to see the nodes' "
+                  "output)", file=sys.stderr)
             return 1
         pngs = [_heatmaps(w2e, a.category, test[0], a.primitive, out, "before")]
         before = _manipulate_each(w2e, a.category, test, a.primitive, "before")
