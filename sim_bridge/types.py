@@ -22,4 +22,4 @@ class Observation:
     movable: np.ndarray  # (N,) bool, point lies on a part with a movable joint (ground truth)
     object_ids: np.ndarray  # (N,) int32, which object of the scene the point belongs to
     camera_pose: np.ndarray  # (4, 4) camera-to-world, x forward, y left, z up (SAPIEN convention)
-    pixels: np.ndarray | None = None  # (N,) int64, row-major index of each point's pixel
+    pixels: np.ndarray  # (N,) int64, row-major index of each point's pixel

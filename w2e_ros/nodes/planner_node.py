@@ -212,7 +212,7 @@ class RosWorld:
     def _newer_than(self, target: int) -> Time | None:
         stamps = [t for t in (self.seen_after.get(int(target)), self.latest_interaction)
                   if t is not None]
-        return max(stamps, key=lambda t: t.nanoseconds) if stamps else None
+        return max(stamps) if stamps else None
 
     def execute(self, target: int, action: Action) -> TrialResult:
         outcome = self.node.execute(action_to_interaction(action, object_id=int(target)))
