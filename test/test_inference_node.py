@@ -372,6 +372,7 @@ def test_a_replay_pack_is_replayed_whole_and_a_collection_by_replay_fraction(
                     Parameter("threads", value=1)])
         try:
             for prim in ("push", "pull"):
+                assert g.node.served[prim].replay_ready.wait(60.0)
                 assert len(g.node.served[prim].explorer.replay_rows) == rows, (source, prim)
         finally:
             g.close()
@@ -380,7 +381,67 @@ def test_a_replay_pack_is_replayed_whole_and_a_collection_by_replay_fraction(
                 Parameter("replay_data", value="shipped"), Parameter("threads", value=1)])
     try:  # the pack shipped beside the default checkpoints, replayed whole
         shipped = InteractionData.load(default_replay_pack())
+        assert g.node.served["push"].replay_ready.wait(120.0)
         assert len(g.node.served["push"].explorer.replay_rows) == int(
             (shipped.primitive == "push").sum()) == 180
     finally:
         g.close()
+
+
+def test_services_answer_while_the_replay_is_encoded_and_updates_wait_for_it(
+        checkpoints, tmp_path, monkeypatch):
+    """Encoding a replay pack takes tens of seconds on a CPU (the shipped one: ~40 s alone,
+    over 180 s on a loaded machine, which made demo bring-ups fail): the node must answer
+    predict_maps meanwhile, and an update must fit with the replay, not without it (the node
+    spins one thread: while an update waits, requests queue behind it as behind a fit)."""
+    from synthetic import synthetic_data
+
+    from w2e_ros.core.finetune import W2EExplorer
+    from w2e_ros.core.train import replay_pack
+
+    data = synthetic_data(obs_per_cat=5, per_obs=40, primitive="pull", seed=1)
+    replay_pack(data, "w2e", "cfw", primitives=("pull",), fraction=0.05).save_shard(
+        tmp_path / "pack" / "shard-00000.npz")
+    release, attaching = threading.Event(), threading.Event()
+    attach = W2EExplorer.attach_replay
+
+    def slow_attach(self, replay):  # an encoding that lasts until the test releases it
+        attaching.set()
+        assert release.wait(60.0)
+        attach(self, replay)
+
+    monkeypatch.setattr(W2EExplorer, "attach_replay", slow_attach)
+    built: list[_Graph] = []
+    t = threading.Thread(target=lambda: built.append(_Graph([
+        Parameter("push_checkpoint", value=str(checkpoints["push"])),
+        Parameter("pull_checkpoint", value=str(checkpoints["pull"])),
+        Parameter("adapted_dir", value=str(tmp_path / "adapted")),
+        Parameter("replay_data", value=str(tmp_path / "pack")),
+        Parameter("finetune_steps", value=2), Parameter("threads", value=1)])), daemon=True)
+    t.start()
+    t.join(30.0)
+    try:
+        assert built, "the node did not come up while its replay was being encoded"
+        g = built[0]
+        served = g.node.served["pull"]
+        assert attaching.wait(10.0) and not served.replay_ready.is_set()
+        msg = cloud_msg(seed=4)
+        res = g.call(g.predict, predict_request([msg], num_best=2))
+        assert res.success, res.message
+        update = g.update.call_async(UpdateModel.Request(
+            cloud=msg, interactions=list(res.maps[0].best_actions[:1]),
+            outcomes=[_outcome(True)], category="door", update_affordance=True))
+        time.sleep(1.0)
+        assert not update.done()  # waits for the replay instead of fitting without it
+        release.set()
+        t0 = time.monotonic()
+        while not update.done():
+            assert time.monotonic() - t0 < 60.0, "update_model did not answer"
+            time.sleep(0.01)
+        assert update.result().success, update.result().message
+        assert len(served.explorer.replay_rows) == 30  # 5 % of 600 pulls
+        assert served.explorer.fit_log and served.explorer.num_explored == 1
+    finally:
+        release.set()
+        for g in built:
+            g.close()

@@ -156,7 +156,18 @@ class W2EExplorer:
         self.acc = RunningAccuracy()  # explored interactions
         self.replay_acc = RunningAccuracy()  # replayed ones (keys: row in replay_rows)
         self.fit_log: list[dict[str, float]] = []
-        if replay is not None and replay.num_interactions and cfg.replay_fraction > 0:
+        if replay is not None:
+            self.attach_replay(replay)
+
+    def attach_replay(self, replay: InteractionData) -> None:
+        """Choose and encode the replayed training interactions. Kept apart from the
+        constructor so that a server can do it in the background (encoding a replay pack takes
+        tens of seconds on a CPU); call it before the first fit, which draws from the same
+        generator, so the choice does not depend on when it ran."""
+        if self.fit_log:
+            raise RuntimeError("attach the replay before the first fit")
+        cfg = self.cfg
+        if replay.num_interactions and cfg.replay_fraction > 0:
             n = max(1, int(round(cfg.replay_fraction * replay.num_interactions)))
             if self.heads_only:  # distinct interactions from as many clouds as possible
                 rows = np.sort(self.rng.choice(replay.num_interactions,

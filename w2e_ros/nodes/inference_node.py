@@ -25,6 +25,7 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -56,6 +57,9 @@ from w2e_ros.ros.pointcloud import (
 )
 from w2e_ros.ros.qos import LATCHED_QOS
 from w2e_ros.ros.spin import run_node
+
+if TYPE_CHECKING:
+    from w2e_ros.core.data import InteractionData
 
 _FT = ExploreConfig()  # the core's fine-tuning defaults, so node and CLI agree
 
@@ -92,6 +96,9 @@ class InferenceSettings:
                                min=0.0)
     replay_fraction: float = param(_FT.replay_fraction, "share of the training interactions "
                                    "replayed (distinct ones)", min=0.0, max=1.0)
+    replay_timeout_s: float = param(
+        300.0, "longest wait of update_model for the replay, which is encoded in the "
+        "background after start-up (predict_maps answers meanwhile)", min=0.0)
     threads: int = param(2, "torch CPU threads", min=1, max=256)
     publish_maps: bool = param(True, "publish affordance_map / similarity_map clouds")
     seed: int = param(0, "seed of the node's direction sampling and replay")
@@ -115,6 +122,9 @@ class _Served:
     meta: dict
     explorer: W2EExplorer
     updates: int = 0
+    # set once the replay is chosen and encoded (at once without one); update_model waits
+    replay_ready: threading.Event = dataclasses.field(default_factory=threading.Event)
+    replay_error: str = ""
 
 
 @dataclass
@@ -182,13 +192,17 @@ class InferenceNode(Node):
     def _load_all(self) -> None:
         for prim in BASE_PRIMITIVES:
             try:
-                self.served[prim] = self._load(prim)
+                self.served[prim] = self._load(prim, background=True)
             except (OSError, ValueError, KeyError, RuntimeError) as exc:
                 self.served.pop(prim, None)
                 self.load_errors[prim] = f"{type(exc).__name__}: {exc}"
                 self.get_logger().error(f"no {prim} model: {exc}")
 
-    def _load(self, primitive: str) -> _Served:
+    def _load(self, primitive: str, background: bool = False) -> _Served:
+        """The checkpoint and its explorer. The replay collection is read here (a bad path is
+        a load error); choosing and encoding its interactions runs in a thread when
+        ``background`` (tens of seconds for the shipped pack on a CPU: the services must not
+        wait for it), else before returning."""
         from w2e_ros.core.data import InteractionData
         from w2e_ros.core.train import REPLAY_PACK, load_training_data_from, method_categories
 
@@ -207,15 +221,47 @@ class InferenceNode(Node):
         cfg = ExploreConfig(finetune=s.finetune, finetune_steps=s.finetune_steps,
                             finetune_lr=s.finetune_lr, replay_fraction=fraction,
                             seed=s.seed)
-        explorer = W2EExplorer(model, cfg, replay=replay, aff_categories=aff_cats,
-                               sim_categories=sim_cats, train_similarity=True, seed=s.seed,
+        explorer = W2EExplorer(model, cfg, aff_categories=aff_cats, sim_categories=sim_cats,
+                               train_similarity=True, seed=s.seed,
                                balanced_similarity=similarity_is_balanced(meta))
+        served = _Served(primitive, path, model, meta, explorer)
         self.load_errors.pop(primitive, None)
-        self.get_logger().info(
-            f"{primitive}: {path} ({method}/{combo}, replay "
-            f"{len(explorer.replay_rows)} distinct interactions"
-            f"{f' from {source}' if source else ''})")
-        return _Served(primitive, path, model, meta, explorer)
+        self.get_logger().info(f"{primitive}: {path} ({method}/{combo})")
+        if replay is None:
+            served.replay_ready.set()
+        elif background:
+            threading.Thread(target=self._attach_replay, args=(served, replay, source),
+                             name=f"replay_{primitive}", daemon=True).start()
+        else:
+            self._attach_replay(served, replay, source)
+        return served
+
+    def _attach_replay(self, served: _Served, replay: InteractionData, source: Path) -> None:
+        t0 = time.perf_counter()
+        try:
+            served.explorer.attach_replay(replay)
+            self.get_logger().info(
+                f"{served.primitive}: replaying {len(served.explorer.replay_rows)} distinct "
+                f"interactions from {source} (encoded in {time.perf_counter() - t0:.1f} s)")
+        except Exception as exc:  # noqa: BLE001 - reported by every update_model call
+            served.replay_error = f"replay from {source} failed: {type(exc).__name__}: {exc}"
+            self.get_logger().error(served.replay_error)
+        finally:
+            served.replay_ready.set()
+
+    def _wait_for_replay(self, req: UpdateModel.Request) -> None:
+        """Block (outside the model lock, so predict_maps keeps answering) until the model the
+        request updates has its replay; a failed or overdue replay refuses the update."""
+        try:
+            served = self._served_for(req.interactions[0].primitive)
+        except (IndexError, ValueError):
+            return  # _update refuses the request with its own message
+        if not served.replay_ready.wait(self.settings.replay_timeout_s):
+            raise ValueError(f"the {served.primitive} replay is still being encoded after "
+                             f"replay_timeout_s = {self.settings.replay_timeout_s:.0f} s; "
+                             "try again later")
+        if served.replay_error:
+            raise ValueError(served.replay_error)
 
     def _served_for(self, primitive: str) -> _Served:
         base = base_primitive(primitive)
@@ -361,6 +407,7 @@ class InferenceNode(Node):
                         res: UpdateModel.Response) -> UpdateModel.Response:
         t0 = time.perf_counter()
         try:
+            self._wait_for_replay(req)
             with self.lock:
                 self._update(req, res)
             res.success = True
