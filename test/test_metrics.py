@@ -217,6 +217,44 @@ def test_predictions_match_the_model_on_each_interaction():
     assert mask_share > 0.7
 
 
+def test_the_probe_with_the_approach_check_executes_the_best_clear_action():
+    """As the stack's manipulate: the highest-affordance candidate whose approach does not run
+    into the cloud, not the argmax (an object with no clear candidate is a failure, untouched)."""
+    import torch
+    from synthetic import RuleWorld, synthetic_data
+
+    from w2e_ros.core.actions import encode_rotation
+    from w2e_ros.core.config import ModelConfig
+    from w2e_ros.core.evaluate import SuccessProbe
+    from w2e_ros.core.feasibility import approach_clear
+    from w2e_ros.core.model import W2EModel
+
+    torch.manual_seed(0)
+    model = W2EModel(ModelConfig(num_points=256, sa_npoint=(64, 16, 8, 4))).eval()
+    data = synthetic_data(categories=("kettle",), obs_per_cat=6, per_obs=4)
+    world = RuleWorld(data)
+    probe = SuccessProbe(world, list(range(6)), "push", points_per_object=32, dirs_per_point=4,
+                         sampler="maps", check_approach=True)
+    probe.outcomes(model)
+    executed = dict(world.executed)
+    blocked_best = 0
+    for t, (cloud, cand) in enumerate(zip(probe.clouds, probe.candidates, strict=True)):
+        with torch.no_grad():
+            f = model.encode(torch.from_numpy(cloud.points[None]))[0][cand.point_index]
+            logit = model.aff_head(f, torch.from_numpy(encode_rotation(cand.up, cand.forward)))
+        order = torch.argsort(logit, descending=True, stable=True).numpy()[:256]
+        clear = approach_clear(cloud.points, cloud.points[cand.point_index[order]],
+                               cand.up[order], cand.forward[order], "push")
+        blocked_best += int(not clear[0])
+        if not clear.any():
+            assert t not in executed
+            continue
+        want = cand.action(cloud, int(order[np.argmax(clear)]), "push")
+        np.testing.assert_allclose(executed[t].point, want.point)
+        np.testing.assert_allclose(executed[t].up, want.up)
+    assert blocked_best > 0  # the check changed the choice somewhere
+
+
 def test_validation_instances_are_neither_explored_nor_test():
     from w2e_ros.core.categories import load_categories
     from w2e_ros.core.evaluate import evaluation_instances, evaluation_targets

@@ -240,6 +240,10 @@ def _add_explore_args(p: argparse.ArgumentParser) -> None:
                         "robot has)")
     p.add_argument("--bar", type=float, default=d.sim_bar,
                    help="mean similarity of an object that ends its exploration (>1: never)")
+    p.add_argument("--check-approach", action="store_true",
+                   help="as the stack's planner does (check_approach): explore only candidates "
+                        "whose approach does not run into the observed cloud; the benchmark's "
+                        "success probe then executes the best such action, as manipulate does")
     p.add_argument("--similarity-update", default=d.similarity_update,
                    choices=list(SIMILARITY_UPDATES),
                    help="finetune: each fit also trains the similarity head on what was "
@@ -254,7 +258,7 @@ def _explore_config(a: argparse.Namespace, **kw: object) -> ExploreConfig:
                          finetune_clouds=a.finetune_clouds,
                          encoder_lr_scale=a.encoder_lr_scale,
                          replay_fraction=a.replay_fraction, anchor=a.anchor,
-                         use_mask=not a.no_mask,
+                         use_mask=not a.no_mask, check_approach=a.check_approach,
                          sim_bar=a.bar, similarity_update=a.similarity_update, **kw)
 
 
@@ -473,6 +477,9 @@ def _add_benchmark(sub: argparse._SubParsersAction) -> None:
                    help="sample-success candidates: the proposal distribution (what the model "
                         "explores), or every movable point x --dirs hemisphere frames (what the "
                         "stack's manipulate scores)")
+    p.add_argument("--probe-dirs", type=int, default=None,
+                   help="sample-success frames per point (default: --dirs; the stack's "
+                        "manipulate scores 16)")
     p.add_argument("--categories", nargs="+", default=None,
                    help="only these novel categories (reduced run)")
     p.add_argument("--explore-objects", type=int, default=10, help="per novel category")
@@ -520,8 +527,8 @@ def _run_benchmark(a: argparse.Namespace) -> int:
         methods=tuple(a.methods), budgets=tuple(a.budgets), mode=a.mode,
         categories=tuple(a.categories) if a.categories else None,
         explore_objects=a.explore_objects, test_objects=a.test_objects, validate=a.validate,
-        eval_points=a.points, eval_dirs=a.dirs, probe=a.probe, heatmaps=not a.no_heatmaps,
-        bootstrap=a.bootstrap, explore=_explore_config(a))
+        eval_points=a.points, eval_dirs=a.probe_dirs or a.dirs, probe=a.probe,
+        heatmaps=not a.no_heatmaps, bootstrap=a.bootstrap, explore=_explore_config(a))
     if (a.merge or a.include_summary) and not a.summarize_only:
         print("w2e benchmark: --merge and --include-summary go with --summarize-only",
               file=sys.stderr)

@@ -115,7 +115,8 @@ class _Evaluator:
             self.probe = SuccessProbe(world, evaluation_targets(
                 cats, cfg.test_objects, validate=cfg.validate, explored=cfg.explore_objects),
                 primitive, cfg.eval_points, cfg.eval_dirs,
-                use_mask=cfg.explore.use_mask, sampler=cfg.probe)
+                use_mask=cfg.explore.use_mask, sampler=cfg.probe,
+                check_approach=cfg.explore.check_approach)
 
     def predict(self, model: W2EModel) -> dict[str, np.ndarray]:
         out: dict[str, np.ndarray] = {}

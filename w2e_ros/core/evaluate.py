@@ -20,6 +20,7 @@ import torch
 from w2e_ros.core.actions import encode_rotation
 from w2e_ros.core.data import InteractionData
 from w2e_ros.core.explore import Candidates, map_candidates, sample_candidates
+from w2e_ros.core.feasibility import first_clear
 from w2e_ros.core.metrics import affordance_fscore_from_probs, success_rate
 from w2e_ros.core.model import W2EModel
 from w2e_ros.core.predict import FEATURES, encoder_key, predict_interactions
@@ -57,7 +58,10 @@ class SuccessProbe:
     training data and the exploration are drawn from, on the movable parts when
     ``use_mask``), or ``maps`` (what the stack's ``manipulate`` scores: every point of the
     movable parts x ``dirs_per_point`` frames uniform over the hemisphere; the reference's
-    argmax of affordance x movable mask). The model executes its best one.
+    argmax of affordance x movable mask). The model executes its best one; with
+    ``check_approach`` the best of its ``approach_candidates`` highest whose approach does not
+    run into the observed cloud (the stack's manipulate: none clear, the object is not touched
+    and counts as a failure).
     """
 
     world: Any  # ExplorationWorld
@@ -68,6 +72,8 @@ class SuccessProbe:
     seed: int = 0
     use_mask: bool = True
     sampler: str = "proposal"  # proposal | maps
+    check_approach: bool = False
+    approach_candidates: int = 256
 
     def __post_init__(self) -> None:
         if self.sampler not in PROBE_SAMPLERS:
@@ -92,7 +98,18 @@ class SuccessProbe:
                                                  strict=True)):
             f = feats[k][torch.from_numpy(cand.point_index).to(model.device)]
             a = torch.from_numpy(encode_rotation(cand.up, cand.forward)).to(model.device)
-            i = int(torch.argmax(model.aff_head(f, a)))
+            logit = model.aff_head(f, a)
+            i = int(torch.argmax(logit))
+            if self.check_approach:
+                top = torch.argsort(logit, descending=True, stable=True)[
+                    :self.approach_candidates].cpu().numpy()
+                pts = cloud.points[cand.point_index[top]]
+                j = first_clear(cloud.points, pts, cand.up[top], cand.forward[top],
+                                self.primitive)
+                if j < 0:  # the stack leaves such an object untouched: a failure
+                    out.append((False, False))
+                    continue
+                i = int(top[j])
             if (k, i) not in self._outcomes:
                 res = self.world.execute(t, cand.action(cloud, i, self.primitive))
                 self._outcomes[(k, i)] = (bool(res.success), bool(res.valid))
