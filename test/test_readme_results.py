@@ -27,6 +27,20 @@ def test_every_linked_image_and_table_is_tracked_by_git():
     assert not missing, f"README links files git does not track: {missing}"
 
 
+def test_the_research_log_and_reproduction_links_resolve_to_tracked_files():
+    """bench/RESEARCH.md and bench/REPRODUCE.md link relative to bench/: every such link
+    names a file git tracks (a link copied from the README unchanged would not)."""
+    tracked = set(subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True,
+                                 text=True).stdout.split())
+    for doc in ("bench/RESEARCH.md", "bench/REPRODUCE.md"):
+        text = (ROOT / doc).read_text()
+        links = [t for t in re.findall(r"\]\(([^)\s#]+)\)", text) if "://" not in t]
+        resolved = [(ROOT / "bench" / t).resolve().relative_to(ROOT).as_posix() for t in links]
+        missing = [p for p in resolved if p not in tracked]
+        assert not missing, f"{doc} links files git does not track: {missing}"
+    assert re.findall(r"\]\(([^)\s#]+)\)", (ROOT / "bench/RESEARCH.md").read_text())
+
+
 def test_readme_approach_check_block_matches_the_committed_json():
     r = subprocess.run([sys.executable, str(ROOT / "bench" / "approach_check.py"), "--readme",
                         "--check"], capture_output=True, text=True)
