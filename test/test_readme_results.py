@@ -17,12 +17,16 @@ def test_readme_benchmark_block_matches_the_committed_json():
     assert r.returncode == 0, r.stderr
 
 
+def _tracked() -> set[str]:
+    return set(subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True,
+                              text=True).stdout.split())
+
+
 def test_every_linked_image_and_table_is_tracked_by_git():
     text = (ROOT / "README.md").read_text()
     links = re.findall(r"\]\(((?:bench|checkpoints|config|docs)/[^)\s]+)\)", text)
     assert links, "the README links no results"
-    tracked = set(subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True,
-                                 text=True).stdout.split())
+    tracked = _tracked()
     missing = [p for p in links if p not in tracked]
     assert not missing, f"README links files git does not track: {missing}"
 
@@ -30,8 +34,7 @@ def test_every_linked_image_and_table_is_tracked_by_git():
 def test_the_research_log_and_reproduction_links_resolve_to_tracked_files():
     """bench/RESEARCH.md and bench/REPRODUCE.md link relative to bench/: every such link
     names a file git tracks (a link copied from the README unchanged would not)."""
-    tracked = set(subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True,
-                                 text=True).stdout.split())
+    tracked = _tracked()
     for doc in ("bench/RESEARCH.md", "bench/REPRODUCE.md"):
         text = (ROOT / doc).read_text()
         links = [t for t in re.findall(r"\]\(([^)\s#]+)\)", text) if "://" not in t]
