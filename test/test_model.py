@@ -17,6 +17,9 @@ from w2e_ros.core.pointnet2_geometry import (
 
 torch.set_num_threads(2)
 SMALL = ModelConfig(num_points=256, sa_npoint=(64, 16, 8, 4))
+# the options the ceiling work added: a deeper head, coordinates as input features
+VARIANTS = [SMALL, ModelConfig(num_points=256, sa_npoint=(64, 16, 8, 4), head_layers=2,
+                               xyz_features=True)]
 
 
 def _cloud(B: int, N: int, seed: int = 0) -> torch.Tensor:
@@ -60,18 +63,20 @@ def test_interpolation_reproduces_features_at_source_points():
     torch.testing.assert_close(out, f2, atol=1e-3, rtol=1e-3)
 
 
-def test_encoder_gives_per_point_features_and_gradients():
-    model = W2EModel(SMALL)
+@pytest.mark.parametrize("cfg", VARIANTS)
+def test_encoder_gives_per_point_features_and_gradients(cfg):
+    model = W2EModel(cfg)
     feats = model.encode(_cloud(2, 256))
-    assert feats.shape == (2, 256, SMALL.feat_dim)
+    assert feats.shape == (2, 256, cfg.feat_dim)
     feats.sum().backward()
     grads = [p.grad for p in model.encoder.parameters()]
     assert all(g is not None and torch.isfinite(g).all() for g in grads)
     assert any(g.abs().sum() > 0 for g in grads)
 
 
-def test_encoder_is_invariant_to_translation():
-    model = W2EModel(SMALL).eval()
+@pytest.mark.parametrize("cfg", VARIANTS)
+def test_encoder_is_invariant_to_translation(cfg):
+    model = W2EModel(cfg).eval()
     x = _cloud(1, 256)
     with torch.no_grad():
         torch.testing.assert_close(model.encode(x), model.encode(x + torch.tensor([3.0, -1, 2])),
@@ -85,8 +90,9 @@ def test_a_clouds_features_do_not_depend_on_the_rest_of_the_batch():
     torch.testing.assert_close(model.encode(x)[:1], model.encode(x[:1]), atol=1e-4, rtol=1e-4)
 
 
-def test_split_head_map_equals_paired_queries():
-    model = W2EModel(SMALL).eval()
+@pytest.mark.parametrize("cfg", VARIANTS)
+def test_split_head_map_equals_paired_queries(cfg):
+    model = W2EModel(cfg).eval()
     with torch.no_grad():
         feats = model.encode(_cloud(2, 256))
         actions = torch.randn(2, 256, 5, 6)
@@ -118,12 +124,13 @@ def test_forward_reads_features_at_each_interactions_point():
     torch.testing.assert_close(aff[2], ref)
 
 
-def test_checkpoint_round_trip(tmp_path):
-    model = W2EModel(SMALL).eval()
+@pytest.mark.parametrize("cfg", VARIANTS)
+def test_checkpoint_round_trip(tmp_path, cfg):
+    model = W2EModel(cfg).eval()
     path = save_model(tmp_path / "m.pt", model, {"primitive": "pull"})
     assert path.stat().st_size < 8e6
     loaded, meta = load_model(path, "cpu")
-    assert meta["primitive"] == "pull" and loaded.cfg == SMALL
+    assert meta["primitive"] == "pull" and loaded.cfg == cfg
     x = _cloud(1, 256)
     with torch.no_grad():
         torch.testing.assert_close(model.encode(x), loaded.encode(x))

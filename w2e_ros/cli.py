@@ -152,6 +152,10 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
                    help="calibrate the similarity with successes and failures weighted "
                         "equally (see w2e calibrate)")
     p.add_argument("--patience", type=int, default=6)
+    p.add_argument("--head-layers", type=int, default=1,
+                   help="hidden layers per head (the paper: 1); a resumed run keeps its own")
+    p.add_argument("--xyz-features", action="store_true",
+                   help="points carry their coordinates as input features (the reference)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
@@ -187,7 +191,11 @@ def _run_train(a: argparse.Namespace) -> int:
     if a.val_data:
         val = InteractionData.concat([InteractionData.load(d) for d in a.val_data])
         val = val.select(primitive=a.primitive)
-    path = train(cfg, a.data, out, resume=a.resume, val_data=val, progress=not a.no_progress)
+    from w2e_ros.core.config import ModelConfig
+
+    mcfg = ModelConfig(head_layers=a.head_layers, xyz_features=a.xyz_features)
+    path = train(cfg, a.data, out, resume=a.resume, val_data=val, progress=not a.no_progress,
+                 model_cfg=mcfg)
     if os.environ.get("RANK", "0") == "0":  # torchrun: process 0 speaks for the run
         print(f"model: {path}")
     return 0
@@ -711,14 +719,76 @@ def _run_replay_pack(a: argparse.Namespace) -> int:
     return 0
 
 
-VERBS: list[Callable[[argparse._SubParsersAction], None]] = [_add_collect, _add_train,
-                                                              _add_calibrate,
-                                                              _add_replay_pack,
-                                                              _add_learnability,
-                                                              _add_fewshot, _add_evaluate,
-                                                              _add_benchmark, _add_demo,
-                                                              _add_bringup, _add_record,
-                                                              _add_replay]
+def _add_ceiling(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "ceiling", help="diagnose the model's ceiling: label smoothness and a fit test",
+        description="labels: replay stored valid trials as they were, with the contact moved "
+                    "3 / 10 mm along the surface and the approach turned 5 / 15 deg, and "
+                    "report the share of labels kept. fit: train a fresh model on ~2,000 "
+                    "training interactions and report how well it ranks them (train AUROC).")
+    cs = p.add_subparsers(dest="check", required=True)
+    lab = cs.add_parser("labels", help="label smoothness of the simulator")
+    lab.add_argument("--data", required=True, help="collection whose valid trials are replayed")
+    lab.add_argument("--out", default="results/ceiling_labels")
+    lab.add_argument("--trials", type=int, default=200, help="valid trials per primitive")
+    lab.add_argument("--primitives", nargs="+", default=["push", "pull"],
+                     choices=["push", "pull"])
+    lab.add_argument("--seed", type=int, default=0)
+    lab.set_defaults(func=_run_ceiling_labels)
+    fit = cs.add_parser("fit", help="can the network fit a small training set?")
+    fit.add_argument("--data", required=True, help="training collection")
+    fit.add_argument("--out", default="results/ceiling_fit")
+    fit.add_argument("--primitive", default="pull", choices=["push", "pull"])
+    fit.add_argument("--method", default="where2act", choices=["w2e", "where2act", "fulldata"])
+    fit.add_argument("--combo", default="cfw", choices=_combos())
+    fit.add_argument("--interactions", type=int, default=2000)
+    fit.add_argument("--steps", type=int, default=1500)
+    fit.add_argument("--eval-every", type=int, default=250)
+    fit.add_argument("--lr", type=float, default=TrainConfig.lr)
+    fit.add_argument("--flip-share", type=float, default=TrainConfig.flip_share)
+    fit.add_argument("--clouds", type=int, default=TrainConfig.clouds_per_batch)
+    fit.add_argument("--per-cloud", type=int, default=TrainConfig.interactions_per_cloud)
+    fit.add_argument("--head-layers", type=int, default=1,
+                     help="hidden layers per head (the paper: 1)")
+    fit.add_argument("--xyz-features", action="store_true",
+                     help="points carry their coordinates as input features (the reference)")
+    fit.add_argument("--seed", type=int, default=0)
+    fit.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    fit.set_defaults(func=_run_ceiling_fit)
+
+
+def _run_ceiling_labels(a: argparse.Namespace) -> int:
+    from w2e_ros.core.ceiling import LabelCheckConfig, label_smoothness, labels_table
+
+    res = label_smoothness(LabelCheckConfig(data=a.data, out=a.out, trials_per_primitive=a.trials,
+                                            primitives=tuple(a.primitives), seed=a.seed))
+    print(labels_table(res))
+    print(f"{res['seconds']:.0f} s; written to {a.out}/labels.json and labels.md")
+    return 0
+
+
+def _run_ceiling_fit(a: argparse.Namespace) -> int:
+    from w2e_ros.core.ceiling import FitTestConfig, fit_test
+
+    res = fit_test(FitTestConfig(
+        data=a.data, out=a.out, primitive=a.primitive, method=a.method, combo=a.combo,
+        interactions=a.interactions, steps=a.steps, eval_every=a.eval_every, seed=a.seed,
+        train={"lr": a.lr, "flip_share": a.flip_share, "clouds_per_batch": a.clouds,
+               "interactions_per_cloud": a.per_cloud, "threads": a.threads},
+        model={"head_layers": a.head_layers, "xyz_features": a.xyz_features}))
+    for r in res["curve"]:
+        print(f"step {r['step']:>6}  loss {r['train_loss']:.4f}  train AUROC {r['auroc']:.4f}  "
+              f"AP {r['ap']:.4f}  ({r['seconds']:.0f} s)")
+    print(f"{res['interactions']} interactions on {res['observations']} clouds "
+          f"({res['positives']} positive): train AUROC {res['final_auroc']:.4f}; "
+          f"written to {a.out}/fit.json")
+    return 0
+
+
+VERBS: list[Callable[[argparse._SubParsersAction], None]] = [
+    _add_collect, _add_train, _add_calibrate, _add_replay_pack, _add_learnability, _add_fewshot,
+    _add_evaluate, _add_benchmark, _add_ceiling, _add_demo, _add_bringup, _add_record,
+    _add_replay]
 
 
 def build_parser() -> argparse.ArgumentParser:

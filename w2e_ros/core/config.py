@@ -33,8 +33,10 @@ class ModelConfig:
     fp_mlp: tuple[tuple[int, ...], ...] = ((256, 256), (256, 256), (256, 128), (128, 128, 128))
     feat_dim: int = 128  # per-point feature
     action_dim: int = 6  # [up, forward]
-    head_hidden: int = 128  # one hidden layer per head (paper §3.4)
+    head_hidden: int = 128  # width of the heads' hidden layers
+    head_layers: int = 1  # hidden layers per head (paper §3.4: one)
     leaky_slope: float = 0.01
+    xyz_features: bool = False  # points carry their coordinates as features (reference)
     norm: str = "group"  # group | batch (see pointnet2._norm for why group)
     norm_groups: int = 8
 

@@ -477,19 +477,24 @@ class W2EExplorer:
             else:
                 stats = self._step_all(self._sample(explored, cfg.finetune_clouds),
                                        self._sample(replay, max(1, cfg.finetune_clouds // 2)))
-            if not self.heads_only and steps % 100 == 0:  # minutes per fit on a CPU
-                rate = steps / (time.perf_counter() - t0)
-                log.info("fit step %d/%d (%.2f steps/s, at most %.0f s left), explored-set "
-                         "loss %.3f", steps, cfg.finetune_steps, rate,
-                         (cfg.finetune_steps - steps) / rate, best)
+            stop = False
             if steps % 20 == 0 and steps >= cfg.finetune_min_steps:
                 loss = self.explored_fit()["fit_loss"]
                 if loss < best * 0.995:
                     best, bad = loss, 0
                 else:
                     bad += 1
-                    if bad >= cfg.fit_patience:
-                        break
+                    stop = bad >= cfg.fit_patience
+            if not self.heads_only and steps % 100 == 0:  # minutes per fit on a CPU
+                # the explored-set loss is only measured from finetune_min_steps on (it
+                # printed "inf", the unset best, at step 100 before it was measured there)
+                rate = steps / (time.perf_counter() - t0)
+                measured = f"{best:.3f}" if np.isfinite(best) else "not measured yet"
+                log.info("fit step %d/%d (%.2f steps/s, at most %.0f s left), best "
+                         "explored-set loss %s", steps, cfg.finetune_steps, rate,
+                         (cfg.finetune_steps - steps) / rate, measured)
+            if stop:
+                break
         fit = self.explored_fit()
         out = {**stats, **fit, "fit_steps": float(steps),
                "affordance_trained": float(self._train_affordance)}

@@ -32,19 +32,30 @@ def _centred(clouds: torch.Tensor) -> torch.Tensor:
 
 
 class ActionHead(nn.Module):
-    """MLP with one hidden layer on [point feature, action]: logit per (point, action)."""
+    """MLP on [point feature, action]: logit per (point, action).
 
-    def __init__(self, feat_dim: int, action_dim: int, hidden: int, slope: float) -> None:
+    The first layer is split (per-point + per-action parts, added); ``layers`` - 1 further
+    hidden layers of the same width follow it (the paper's head has one hidden layer).
+    """
+
+    def __init__(self, feat_dim: int, action_dim: int, hidden: int, slope: float,
+                 layers: int = 1) -> None:
         super().__init__()
         self.point_fc = nn.Linear(feat_dim, hidden)  # per-point part (carries the bias)
         self.action_fc = nn.Linear(action_dim, hidden, bias=False)  # per-action part
+        self.hidden = nn.ModuleList(nn.Linear(hidden, hidden) for _ in range(layers - 1))
         self.out = nn.Linear(hidden, 1)
         self.slope = slope
 
+    def _rest(self, h: torch.Tensor) -> torch.Tensor:
+        h = F.leaky_relu(h, self.slope)
+        for layer in self.hidden:
+            h = F.leaky_relu(layer(h), self.slope)
+        return self.out(h).squeeze(-1)
+
     def forward(self, feats: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         """Paired queries: feats (..., F), actions (..., 6) -> logits (...)."""
-        h = F.leaky_relu(self.point_fc(feats) + self.action_fc(actions), self.slope)
-        return self.out(h).squeeze(-1)
+        return self._rest(self.point_fc(feats) + self.action_fc(actions))
 
     def map(self, feats: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         """Every point x its K actions: feats (B, N, F), actions (B, N, K, 6) -> (B, N, K).
@@ -53,8 +64,7 @@ class ActionHead(nn.Module):
         """
         hp = self.point_fc(feats).unsqueeze(2)  # (B, N, 1, H)
         ha = self.action_fc(actions)  # (B, N, K, H) or (K, H)
-        h = F.leaky_relu(hp + ha, self.slope)
-        return self.out(h).squeeze(-1)
+        return self._rest(hp + ha)
 
 
 class W2EModel(nn.Module):
@@ -65,8 +75,10 @@ class W2EModel(nn.Module):
         self.cfg = cfg or ModelConfig()
         c = self.cfg
         self.encoder = PointNet2Encoder(c)
-        self.aff_head = ActionHead(c.feat_dim, c.action_dim, c.head_hidden, c.leaky_slope)
-        self.sim_head = ActionHead(c.feat_dim, c.action_dim, c.head_hidden, c.leaky_slope)
+        self.aff_head = ActionHead(c.feat_dim, c.action_dim, c.head_hidden, c.leaky_slope,
+                                   c.head_layers)
+        self.sim_head = ActionHead(c.feat_dim, c.action_dim, c.head_hidden, c.leaky_slope,
+                                   c.head_layers)
 
     @property
     def device(self) -> torch.device:

@@ -82,14 +82,18 @@ class PointNet2Encoder(nn.Module):
     def __init__(self, cfg: ModelConfig) -> None:
         super().__init__()
         self.cfg = cfg
-        sa, c = [], 0
+        # xyz_features: every point carries its (centred) coordinates as input features, as
+        # the reference feeds its cloud twice: the first level then sees absolute positions
+        # besides the offsets, and the last propagation layer the query point's own position
+        c0 = 3 if cfg.xyz_features else 0
+        sa, c = [], c0
         for npoint, radius, nsample, mlp in zip(cfg.sa_npoint, cfg.sa_radius, cfg.sa_nsample,
                                                 cfg.sa_mlp, strict=True):
             sa.append(SetAbstraction(npoint, radius, nsample, c, mlp, cfg))
             c = mlp[-1]
         self.sa = nn.ModuleList(sa)
         # skip widths from the deepest level back to the input (which has none)
-        skips = [m[-1] for m in cfg.sa_mlp[:-1]][::-1] + [0]
+        skips = [m[-1] for m in cfg.sa_mlp[:-1]][::-1] + [c0]
         fp, c = [], cfg.sa_mlp[-1][-1]
         for skip, mlp in zip(skips, cfg.fp_mlp, strict=True):
             fp.append(FeaturePropagation(c + skip, mlp, cfg))
@@ -101,7 +105,7 @@ class PointNet2Encoder(nn.Module):
         """The set-abstraction levels: points (B, N_l, 3) and features (B, N_l, C_l) per level,
         the input first (no features). All the geometry (sampling, grouping) happens here."""
         xyzs: list[torch.Tensor] = [xyz]
-        feats: list[torch.Tensor | None] = [None]
+        feats: list[torch.Tensor | None] = [xyz if self.cfg.xyz_features else None]
         for layer in self.sa:
             new_xyz, new_feats = layer(xyzs[-1], feats[-1])
             xyzs.append(new_xyz)

@@ -34,7 +34,7 @@ import math
 import os
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -594,6 +594,12 @@ def train(cfg: TrainConfig, data_dir: str | Path, out_dir: str | Path, resume: b
     run_dir.mkdir(parents=True, exist_ok=True)
     data = load_training_data(data_dir, cfg.method, cfg.combo, cfg.primitive,
                               cfg.include_invalid)
+    if resume and (run_dir / "state.pt").exists() and (run_dir / "config.json").exists():
+        # a resumed run keeps the network it started with, whatever the flags say now
+        model_cfg = ModelConfig.from_dict(json.loads((run_dir / "config.json").read_text())
+                                          ["model"])
+    elif model_cfg is not None:  # the network's input size is the collection's
+        model_cfg = replace(model_cfg, num_points=int(data.points.shape[1]))
     trainer = Trainer(cfg, data, model_cfg, distributed=distributed)
     validator = None
     if val_data is not None:
@@ -722,7 +728,7 @@ def calibrate_similarity(model: W2EModel, data: InteractionData, sim_cats: tuple
     y = torch.from_numpy(correct.astype(np.float32)).to(dev)
     head = model.sim_head
     with torch.no_grad():  # fresh weights: the joint head's ranking is the problem
-        for layer in (head.point_fc, head.action_fc, head.out):
+        for layer in (head.point_fc, head.action_fc, *head.hidden, head.out):
             g = torch.Generator().manual_seed(seed + 1)
             w = torch.empty_like(layer.weight)
             bound = 1.0 / math.sqrt(layer.weight.shape[1])

@@ -1,0 +1,254 @@
+"""``w2e ceiling``: how far the affordance model could go, measured before it is trained further.
+
+Two diagnostics bound what exploring can show (issue 26):
+
+* ``labels``: is the simulator's outcome a deterministic, locally smooth function of what the
+  model is given? Stored valid trials are replayed as they were, with the contact moved along
+  the surface (3 / 10 mm) and with the approach turned (5 / 15 deg). If a label flips under a
+  3 mm shift, no model can be sharper than that.
+* ``fit``: can the network fit a small training set? The affordance head and encoder trained
+  on ~2,000 interactions must rank them almost perfectly (train-set AUROC >= 0.98); if they
+  cannot, the inputs, encoding or optimisation are wrong, and more data would not help.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from w2e_ros.core.config import ModelConfig, TrainConfig
+from w2e_ros.core.data import InteractionData
+from w2e_ros.core.metrics import auroc, classification_metrics
+from w2e_ros.core.primitives import Action
+
+log = logging.getLogger("w2e.ceiling")
+
+PERTURBATIONS = (("replay", 0.0, 0.0), ("shift_3mm", 0.003, 0.0), ("shift_10mm", 0.010, 0.0),
+                 ("turn_5deg", 0.0, 5.0), ("turn_15deg", 0.0, 15.0))
+"""(name, contact shift along the surface in m, approach turn in degrees)."""
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.maximum(np.linalg.norm(v), 1e-12)
+
+
+def _rotate(v: np.ndarray, axis: np.ndarray, deg: float) -> np.ndarray:
+    """Rodrigues: ``v`` turned by ``deg`` about the unit ``axis``."""
+    t = np.deg2rad(deg)
+    return (v * np.cos(t) + np.cross(axis, v) * np.sin(t)
+            + axis * (axis @ v) * (1.0 - np.cos(t)))
+
+
+def perturb(action: Action, normal: np.ndarray, shift: float, turn_deg: float,
+            rng: np.random.Generator) -> Action:
+    """The action with its contact moved ``shift`` metres in a random direction along the
+    surface (perpendicular to ``normal``) and its gripper frame turned ``turn_deg`` about a
+    random axis perpendicular to the approach (the roll about ``up`` is kept)."""
+    point, up, fwd = (np.asarray(a, np.float64) for a in (action.point, action.up,
+                                                          action.forward))
+    n = _unit(np.asarray(normal, np.float64))
+    if shift > 0:
+        d = rng.normal(size=3)
+        d = _unit(d - (d @ n) * n)
+        point = point + shift * d
+    if turn_deg > 0:
+        axis = rng.normal(size=3)
+        axis = _unit(axis - (axis @ up) * up)
+        up, fwd = _unit(_rotate(up, axis, turn_deg)), _unit(_rotate(fwd, axis, turn_deg))
+    return Action(point=point, up=up, forward=fwd, primitive=action.primitive)
+
+
+@dataclass
+class LabelCheckConfig:
+    data: str  # a collection (the novel categories' test or explore split)
+    out: str
+    trials_per_primitive: int = 200  # valid stored trials replayed per primitive
+    primitives: tuple[str, ...] = ("push", "pull")
+    positive_share: float = 0.5  # of the replayed trials, successes where there are enough
+    seed: int = 0
+
+
+def _pick_trials(data: InteractionData, primitive: str, n: int, positive_share: float,
+                 rng: np.random.Generator) -> np.ndarray:
+    """``n`` valid trials of one primitive, spread evenly over the categories, with up to
+    ``positive_share`` successes (positives are rare; a label check on failures alone would
+    mostly measure 'nothing moves nearby')."""
+    valid = np.flatnonzero((data.primitive == primitive) & data.valid)
+    cats = data.interaction_category[valid]
+    names = np.unique(cats)
+    chosen = []
+    for i, c in enumerate(names):
+        quota = n // len(names) + (1 if i < n % len(names) else 0)
+        rows = valid[cats == c]
+        pos, neg = rows[data.success[rows]], rows[~data.success[rows]]
+        k_pos = min(len(pos), int(round(positive_share * quota)))
+        k_neg = min(len(neg), quota - k_pos)
+        k_pos = min(len(pos), quota - k_neg)
+        chosen += [rng.choice(pos, k_pos, replace=False), rng.choice(neg, k_neg, replace=False)]
+    return np.sort(np.concatenate(chosen)) if chosen else np.zeros(0, np.int64)
+
+
+def label_smoothness(cfg: LabelCheckConfig, world=None) -> dict:
+    """Replay and perturb stored trials; per primitive and category, the share of labels kept.
+
+    Writes ``labels.json`` and ``labels.md`` under ``cfg.out``."""
+    from tqdm import tqdm
+
+    from w2e_ros.core.sim_world import SimWorld, Target
+
+    data = InteractionData.load(cfg.data)
+    world = world or SimWorld(num_points=int(data.points.shape[1]))
+    rng = np.random.default_rng(cfg.seed)
+    rows_out: list[dict] = []
+    t0 = time.perf_counter()
+    for prim in cfg.primitives:
+        picked = _pick_trials(data, prim, cfg.trials_per_primitive, cfg.positive_share, rng)
+        for r in tqdm(picked, desc=f"labels {prim}", unit="trial"):
+            o = int(data.obs_index[r])
+            target = Target(str(data.category[o]), int(data.instance[o]), int(data.obs_seed[o]))
+            base = Action(point=data.points[o, data.point_index[r]].astype(np.float64),
+                          up=data.up[r].astype(np.float64),
+                          forward=data.forward[r].astype(np.float64), primitive=prim)
+            normal = data.normals[o, data.point_index[r]]
+            row = {"primitive": prim, "category": target.category, "row": int(r),
+                   "label": bool(data.success[r])}
+            for name, shift, turn in PERTURBATIONS:
+                act = perturb(base, normal, shift, turn, rng)
+                try:
+                    res = world.execute(target, act, seed=int(data.trial_seed[r]))
+                    row[name] = bool(res.success)
+                except Exception as exc:  # an exploding trial: its label is "failure"
+                    log.warning("trial %s on %s raised: %s", name, target.name, exc)
+                    row[name] = False
+            rows_out.append(row)
+    result = summarize_labels(rows_out)
+    result["seconds"] = time.perf_counter() - t0
+    result["config"] = asdict(cfg)
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "labels.json").write_text(json.dumps({**result, "trials": rows_out}, indent=1))
+    (out / "labels.md").write_text(labels_table(result))
+    return result
+
+
+def summarize_labels(rows: list[dict]) -> dict:
+    """Share of trials whose label each perturbation keeps, per primitive (all categories
+    and per category), with the positives' share apart (a flip of a success is what hurts)."""
+    out: dict = {"primitives": {}}
+    for prim in sorted({r["primitive"] for r in rows}):
+        pr = [r for r in rows if r["primitive"] == prim]
+        groups = {"all": pr, **{c: [r for r in pr if r["category"] == c]
+                                for c in sorted({r["category"] for r in pr})}}
+        table = {}
+        for g, rs in groups.items():
+            cell = {"n": len(rs), "positives": sum(r["label"] for r in rs)}
+            for name, _, _ in PERTURBATIONS:
+                kept = [r[name] == r["label"] for r in rs]
+                kept_pos = [r[name] for r in rs if r["label"]]
+                cell[name] = float(np.mean(kept)) if kept else float("nan")
+                cell[f"{name}_pos"] = float(np.mean(kept_pos)) if kept_pos else float("nan")
+            table[g] = cell
+        out["primitives"][prim] = table
+    return out
+
+
+def labels_table(result: dict) -> str:
+    names = [n for n, _, _ in PERTURBATIONS]
+    lines = ["Share of labels kept (all trials / successes only), valid stored trials replayed.",
+             ""]
+    for prim, table in result["primitives"].items():
+        lines += [f"### {prim}", "",
+                  "| category | n (pos) | " + " | ".join(names) + " |",
+                  "|---" * (len(names) + 2) + "|"]
+        for g, cell in table.items():
+            vals = " | ".join(f"{100 * cell[n]:.1f} / {100 * cell[n + '_pos']:.1f}"
+                              for n in names)
+            lines.append(f"| {g} | {cell['n']} ({cell['positives']}) | {vals} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+@dataclass
+class FitTestConfig:
+    data: str  # a training collection
+    out: str
+    primitive: str = "pull"
+    method: str = "where2act"  # whose categories: where2act = the combination's three
+    combo: str = "cfw"
+    interactions: int = 2000  # the fixed training set (whole observations, in order)
+    steps: int = 1500
+    eval_every: int = 250
+    seed: int = 0
+    train: dict = field(default_factory=dict)  # TrainConfig overrides (lr, flip_share, ...)
+    model: dict = field(default_factory=dict)  # ModelConfig overrides (head_layers, ...)
+
+
+def fit_subset(data: InteractionData, n: int, seed: int) -> InteractionData:
+    """About ``n`` interactions made of whole observations drawn at random (a fit test of a
+    model that reads one cloud for many interactions must keep the clouds whole)."""
+    rng = np.random.default_rng(seed)
+    counts = np.bincount(data.obs_index, minlength=data.num_observations)
+    keep, total = [], 0
+    for o in rng.permutation(data.num_observations):
+        if total >= n:
+            break
+        keep.append(o)
+        total += int(counts[o])
+    return data.subset(np.isin(data.obs_index, keep))
+
+
+def fit_test(cfg: FitTestConfig, progress: bool = True) -> dict:
+    """Train a fresh model on ``cfg.interactions`` interactions and score it on them.
+
+    The model is judged on exactly the rows it trained on (flipped copies aside): the
+    question is only whether it can fit them. Writes ``fit.json`` under ``cfg.out``."""
+    from tqdm import tqdm
+
+    from w2e_ros.core.predict import predict_interactions
+    from w2e_ros.core.train import Trainer, load_training_data
+
+    data = load_training_data(cfg.data, cfg.method, cfg.combo, cfg.primitive)
+    sub = fit_subset(data, cfg.interactions, cfg.seed)
+    tcfg = TrainConfig(method=cfg.method, combo=cfg.combo, primitive=cfg.primitive,
+                       steps=cfg.steps, seed=cfg.seed, **cfg.train)
+    torch.set_num_threads(tcfg.threads)
+    mcfg = ModelConfig(**{"num_points": int(sub.points.shape[1]), **cfg.model})
+    trainer = Trainer(tcfg, sub, mcfg)
+    log.info("fit test: %d interactions on %d clouds (%.1f%% positive), %d steps",
+             sub.num_interactions, sub.num_observations, 100 * sub.positive_rate(), cfg.steps)
+    curve: list[dict] = []
+    losses: list[float] = []
+    t0 = time.perf_counter()
+    for step in tqdm(range(1, cfg.steps + 1), disable=not progress, unit="step"):
+        stats = trainer.train_step()
+        losses.append(stats["loss_aff"])
+        if step % cfg.eval_every == 0 or step == cfg.steps:
+            aff, _ = predict_interactions(trainer.model, sub, cache=None)
+            met = classification_metrics(aff, sub.success)
+            rec = {"step": step, "train_loss": float(np.mean(losses)),
+                   "auroc": met["auroc"], "ap": met["ap"], "fscore": met["fscore"],
+                   "valid_auroc": auroc(aff[sub.valid], sub.success[sub.valid]),
+                   "seconds": time.perf_counter() - t0}
+            curve.append(rec)
+            losses = []
+            log.info("fit step %d: loss %.4f train AUROC %.4f AP %.4f", step, rec["train_loss"],
+                     rec["auroc"], rec["ap"])
+    aff, _ = predict_interactions(trainer.model, sub, cache=None)
+    per_cat = {str(c): auroc(aff[m], sub.success[m])
+               for c in np.unique(sub.interaction_category)
+               for m in [sub.interaction_category == c]}
+    result = {"config": asdict(cfg), "train_config": asdict(tcfg),
+              "interactions": sub.num_interactions, "observations": sub.num_observations,
+              "positives": int(sub.success.sum()), "curve": curve,
+              "final_auroc": curve[-1]["auroc"], "per_category_auroc": per_cat,
+              "seconds": time.perf_counter() - t0}
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "fit.json").write_text(json.dumps(result, indent=1))
+    return result
