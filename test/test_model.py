@@ -10,6 +10,8 @@ from w2e_ros.core.config import ModelConfig
 from w2e_ros.core.model import W2EModel, load_model, save_model
 from w2e_ros.core.pointnet2_geometry import (
     farthest_point_sample,
+    group_knn,
+    index_points,
     query_ball_point,
     square_distance,
     three_interpolate,
@@ -19,7 +21,8 @@ torch.set_num_threads(2)
 SMALL = ModelConfig(num_points=256, sa_npoint=(64, 16, 8, 4))
 # the options the ceiling work added: a deeper head, coordinates as input features
 VARIANTS = [SMALL, ModelConfig(num_points=256, sa_npoint=(64, 16, 8, 4), head_layers=2,
-                               xyz_features=True)]
+                               xyz_features=True),
+            ModelConfig(num_points=256, sa_npoint=(64, 16, 8, 4), local_k=8)]
 
 
 def _cloud(B: int, N: int, seed: int = 0) -> torch.Tensor:
@@ -54,6 +57,16 @@ def test_ball_query_keeps_neighbours_inside_radius():
     assert idx.shape == (1, 10, 16)
     d = ((xyz[0, idx[0]] - centres[0, :, None]) ** 2).sum(-1)
     assert (d <= 0.2**2 + 1e-6).all()
+
+
+def test_knn_groups_hold_each_points_nearest_neighbours_itself_first():
+    x = _cloud(2, 300)
+    g = group_knn(8, x)  # the CPU path: a k-d tree
+    assert g.shape == (2, 300, 8, 3)
+    assert torch.all(g[:, :, 0] == 0)  # the point itself
+    idx = torch.topk(square_distance(x, x), 8, dim=-1, largest=False, sorted=True)[1]
+    ref = index_points(x, idx) - x.unsqueeze(2)  # brute force, the CUDA path
+    torch.testing.assert_close(g.norm(dim=-1), ref.norm(dim=-1), atol=1e-5, rtol=1e-5)
 
 
 def test_interpolation_reproduces_features_at_source_points():

@@ -349,6 +349,30 @@ def test_train_stops_when_validation_levels_off(tmp_path, data, val_data):
     assert state["best"].tolist() == [pytest.approx(recs[0]["val_score"]), 2.0, 3.0]
 
 
+def test_patience_cannot_stop_a_curve_that_still_rises():
+    from w2e_ros.core.train import still_rising
+
+    rng = np.random.default_rng(0)
+    # a noisy climb: no new best in the last few checks, yet the trend is up
+    assert still_rising([0.70, 0.74, 0.72, 0.76, 0.75, 0.78, 0.77])
+    assert not still_rising([0.80, 0.79, 0.80, 0.78, 0.80, 0.79])  # flat
+    assert not still_rising([0.80, 0.78, 0.76, 0.74])  # falling
+    assert not still_rising([0.7, 0.8])  # too few checks to tell
+    flat = 0.8 + 0.01 * rng.standard_normal((200, 7))
+    assert np.mean([still_rising(f) for f in flat]) < 0.25  # noise alone rarely reads as a rise
+
+
+def test_trainer_levels_off_only_without_a_new_best_and_without_a_rise(data):
+    t = Trainer(_cfg(), data, SMALL, device=CPU)
+    t.bad_validations = 3
+    t.val_scores = [0.70, 0.74, 0.72, 0.76, 0.75, 0.78, 0.77]
+    assert not t.levelled_off(patience=3) and not t.levelled_off(patience=6)
+    t.val_scores = [0.78, 0.80, 0.79, 0.80, 0.79]
+    assert t.levelled_off(patience=3)
+    t.bad_validations = 2
+    assert not t.levelled_off(patience=3)
+
+
 def test_calibration_refits_only_the_similarity_head_to_the_final_correctness(data):
     from w2e_ros.core.train import calibrate_similarity
 

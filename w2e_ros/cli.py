@@ -151,11 +151,15 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--balanced-similarity", action="store_true",
                    help="calibrate the similarity with successes and failures weighted "
                         "equally (see w2e calibrate)")
-    p.add_argument("--patience", type=int, default=6)
+    p.add_argument("--patience", type=int, default=6,
+                   help="stop after this many validations without a new best, unless the "
+                        "scores over them still trend upwards (slope above its standard error)")
     p.add_argument("--head-layers", type=int, default=1,
                    help="hidden layers per head (the paper: 1); a resumed run keeps its own")
     p.add_argument("--xyz-features", action="store_true",
                    help="points carry their coordinates as input features (the reference)")
+    p.add_argument("--local-k", type=int, default=0,
+                   help="> 0: every point carries a descriptor of its k nearest points")
     p.add_argument("--resume", action="store_true", help="continue the run in --out")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
@@ -193,7 +197,8 @@ def _run_train(a: argparse.Namespace) -> int:
         val = val.select(primitive=a.primitive)
     from w2e_ros.core.config import ModelConfig
 
-    mcfg = ModelConfig(head_layers=a.head_layers, xyz_features=a.xyz_features)
+    mcfg = ModelConfig(head_layers=a.head_layers, xyz_features=a.xyz_features,
+                       local_k=a.local_k)
     path = train(cfg, a.data, out, resume=a.resume, val_data=val, progress=not a.no_progress,
                  model_cfg=mcfg)
     if os.environ.get("RANK", "0") == "0":  # torchrun: process 0 speaks for the run
@@ -752,6 +757,8 @@ def _add_ceiling(sub: argparse._SubParsersAction) -> None:
                      help="hidden layers per head (the paper: 1)")
     fit.add_argument("--xyz-features", action="store_true",
                      help="points carry their coordinates as input features (the reference)")
+    fit.add_argument("--local-k", type=int, default=0,
+                     help="> 0: every point carries a descriptor of its k nearest points")
     fit.add_argument("--seed", type=int, default=0)
     fit.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     fit.set_defaults(func=_run_ceiling_fit)
@@ -775,7 +782,8 @@ def _run_ceiling_fit(a: argparse.Namespace) -> int:
         interactions=a.interactions, steps=a.steps, eval_every=a.eval_every, seed=a.seed,
         train={"lr": a.lr, "flip_share": a.flip_share, "clouds_per_batch": a.clouds,
                "interactions_per_cloud": a.per_cloud, "threads": a.threads},
-        model={"head_layers": a.head_layers, "xyz_features": a.xyz_features}))
+        model={"head_layers": a.head_layers, "xyz_features": a.xyz_features,
+               "local_k": a.local_k}))
     for r in res["curve"]:
         print(f"step {r['step']:>6}  loss {r['train_loss']:.4f}  train AUROC {r['auroc']:.4f}  "
               f"AP {r['ap']:.4f}  ({r['seconds']:.0f} s)")

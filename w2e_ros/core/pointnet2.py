@@ -11,6 +11,7 @@ from torch import nn
 
 from w2e_ros.core.config import ModelConfig
 from w2e_ros.core.pointnet2_geometry import (
+    group_knn,
     sample_and_group,
     sample_and_group_all,
     three_interpolate,
@@ -85,7 +86,11 @@ class PointNet2Encoder(nn.Module):
         # xyz_features: every point carries its (centred) coordinates as input features, as
         # the reference feeds its cloud twice: the first level then sees absolute positions
         # besides the offsets, and the last propagation layer the query point's own position
-        c0 = 3 if cfg.xyz_features else 0
+        # local_k: every point also carries a descriptor of its k nearest input points (a
+        # PointNet over their offsets): the first level's centroids are ~2 point spacings
+        # apart, so without it a contact's feature is only interpolated between them
+        self.local = _mlp(3, cfg.local_mlp, cfg, dims=2) if cfg.local_k else None
+        c0 = (3 if cfg.xyz_features else 0) + (cfg.local_mlp[-1] if cfg.local_k else 0)
         sa, c = [], c0
         for npoint, radius, nsample, mlp in zip(cfg.sa_npoint, cfg.sa_radius, cfg.sa_nsample,
                                                 cfg.sa_mlp, strict=True):
@@ -105,12 +110,23 @@ class PointNet2Encoder(nn.Module):
         """The set-abstraction levels: points (B, N_l, 3) and features (B, N_l, C_l) per level,
         the input first (no features). All the geometry (sampling, grouping) happens here."""
         xyzs: list[torch.Tensor] = [xyz]
-        feats: list[torch.Tensor | None] = [xyz if self.cfg.xyz_features else None]
+        feats: list[torch.Tensor | None] = [self._point_features(xyz)]
         for layer in self.sa:
             new_xyz, new_feats = layer(xyzs[-1], feats[-1])
             xyzs.append(new_xyz)
             feats.append(new_feats)
         return xyzs, feats
+
+    def _point_features(self, xyz: torch.Tensor) -> torch.Tensor | None:
+        """Input features of every point (B, N, C0): coordinates and / or the local
+        descriptor, as the config asks; None for the plain encoder."""
+        parts = []
+        if self.cfg.xyz_features:
+            parts.append(xyz)
+        if self.local is not None:
+            grouped = group_knn(self.cfg.local_k, xyz)  # (B, N, k, 3)
+            parts.append(self.local(grouped.permute(0, 3, 1, 2)).amax(dim=-1).transpose(1, 2))
+        return torch.cat(parts, dim=-1) if parts else None
 
     def propagate(self, xyzs: list[torch.Tensor],
                   feats: list[torch.Tensor | None]) -> torch.Tensor:

@@ -486,6 +486,13 @@ class Trainer:
                 device_ids=[self.device.index] if self.device.type == "cuda" else None)
         self.step = 0
         self.best_score, self.best_step, self.bad_validations = -np.inf, 0, 0
+        self.val_scores: list[float] = []  # every validation's score, in order
+
+    def levelled_off(self, patience: int) -> bool:
+        """Stop: ``patience`` validations without a new best AND no upward trend over them
+        (a noisy curve that still rises can go ``patience`` checks without a new best)."""
+        return (self.bad_validations >= patience
+                and not still_rising(self.val_scores[-(patience + 1):]))
 
     @property
     def steps_per_epoch(self) -> int:
@@ -552,7 +559,8 @@ class Trainer:
                  "acc": self.acc.state(), "rng": json.dumps(self.rng.bit_generator.state),
                  "torch_rng": torch.get_rng_state(), "meta": json.dumps(self.meta()),
                  "best": torch.tensor([self.best_score, self.best_step, self.bad_validations],
-                                      dtype=torch.float64)}
+                                      dtype=torch.float64),
+                 "val_scores": torch.tensor(self.val_scores, dtype=torch.float64)}
         tmp = run_dir / "state.pt.tmp"
         torch.save(state, tmp)
         tmp.replace(run_dir / "state.pt")
@@ -571,6 +579,20 @@ class Trainer:
         self.step = int(state["step"])
         best = state["best"].tolist()
         self.best_score, self.best_step, self.bad_validations = best[0], int(best[1]), int(best[2])
+        self.val_scores = state["val_scores"].tolist() if "val_scores" in state else []
+
+
+def still_rising(scores: Sequence[float]) -> bool:
+    """Whether the least-squares slope of ``scores`` (equally spaced validations) is above
+    zero by more than its standard error: a trend the noise does not explain."""
+    y = np.asarray(scores, dtype=np.float64)
+    if len(y) < 3:
+        return False
+    x = np.arange(len(y), dtype=np.float64) - (len(y) - 1) / 2
+    slope = float(x @ (y - y.mean()) / (x @ x))
+    resid = y - y.mean() - slope * x
+    se = float(np.sqrt(resid @ resid / (len(y) - 2) / (x @ x)))
+    return slope > se
 
 
 def run_name(method: str, combo: str, primitive: str) -> str:
@@ -625,7 +647,7 @@ def train(cfg: TrainConfig, data_dir: str | Path, out_dir: str | Path, resume: b
     t0, start = time.perf_counter(), trainer.step
     bar = tqdm(total=cfg.steps, initial=trainer.step, disable=not (progress and main),
                unit="step", dynamic_ncols=True)
-    stop = validator is not None and trainer.bad_validations >= cfg.patience  # finished run
+    stop = validator is not None and trainer.levelled_off(cfg.patience)  # a finished run
     with (run_dir / "metrics.jsonl" if main else Path(os.devnull)).open("a") as mlog:
         while trainer.step < cfg.steps and not stop:
             window.append(trainer.train_step())
@@ -640,6 +662,7 @@ def train(cfg: TrainConfig, data_dir: str | Path, out_dir: str | Path, resume: b
                            steps_per_s=rate, eta_s=(cfg.steps - trainer.step) / rate)
                 if validate:
                     val = validator.run(trainer.model)
+                    trainer.val_scores.append(float(val["score"]))
                     rec.update({f"val_{k}": v for k, v in val.items()})
                     if val["score"] > trainer.best_score:
                         trainer.best_score, trainer.best_step = val["score"], trainer.step
@@ -647,7 +670,7 @@ def train(cfg: TrainConfig, data_dir: str | Path, out_dir: str | Path, resume: b
                         trainer.save(run_dir, best=True)
                     else:
                         trainer.bad_validations += 1
-                        stop = trainer.bad_validations >= cfg.patience
+                        stop = trainer.levelled_off(cfg.patience)
                     rec.update(best_score=trainer.best_score, best_step=trainer.best_step)
                     log.info("step %d validation score %.4f (best %.4f at %d)%s", trainer.step,
                              val["score"], trainer.best_score, trainer.best_step,
