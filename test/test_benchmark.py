@@ -4,6 +4,7 @@ paired statistics recomputed from the predictions it saved."""
 from __future__ import annotations
 
 import json
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -199,3 +200,26 @@ def test_summary_states_the_seeds_its_files_hold(tmp_path):
                      "--out", str(tmp_path)]) == 0
     assert json.loads((tmp_path / "benchmark.json").read_text())["config"]["seeds"] == [3, 7]
     assert "Seeds [3, 7];" in (tmp_path / "tables.md").read_text()
+
+
+def test_summary_states_the_settings_the_runs_were_made_with(tmp_path):
+    """A --summarize-only merge records each run directory's own settings (anchor, approach
+    check, methods), not the summarizing call's defaults; a setting the runs disagree on is
+    shown per directory."""
+    y = np.random.default_rng(0).random(40) < 0.3
+    for d, methods, steps in (("a", ("none", "random"), 2000), ("b", ("similarity",), 500)):
+        _predictions(tmp_path / d / "predictions_cfw_pull.npz", methods, y, 1)
+        made = asdict(BenchmarkConfig(out=str(tmp_path / d), combos=("cfw",), methods=methods,
+                                      seeds=(0,), budgets=(1,)))
+        made["explore"].update(anchor=0.01, check_approach=True, finetune_steps=steps)
+        (tmp_path / d / "config.json").write_text(json.dumps(made, default=str))
+    assert cli.main(["benchmark", "--summarize-only", "--combos", "cfw", "--primitives", "pull",
+                     "--budgets", "1", "--bootstrap", "10", "--out", str(tmp_path / "sum"),
+                     "--merge", str(tmp_path / "a"), f"{tmp_path / 'b'}:similarity"]) == 0
+    doc = json.loads((tmp_path / "sum" / "benchmark.json").read_text())
+    cfg = doc["config"]
+    assert cfg["explore"]["anchor"] == 0.01 and cfg["explore"]["check_approach"] is True
+    assert cfg["methods"] == ["none", "random", "similarity"]
+    assert cfg["explore"]["finetune_steps"] == {"differs": {str(tmp_path / "a"): 2000,
+                                                            str(tmp_path / "b"): 500}}
+    assert set(doc["run_configs"]) == {str(tmp_path / "a"), str(tmp_path / "b")}

@@ -549,7 +549,7 @@ def _run_benchmark(a: argparse.Namespace) -> int:
     if a.summarize_only:
         try:
             merge_predictions(a.out, a.merge)
-            summarize(a.out, cfg, include=a.include_summary)
+            summarize(a.out, cfg, include=a.include_summary, sources=a.merge)
         except ValueError as e:
             print(f"w2e benchmark: {e}", file=sys.stderr)
             return 2

@@ -26,6 +26,7 @@ import json
 import logging
 import time
 from collections import defaultdict
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -487,8 +488,40 @@ def _ci(samples: np.ndarray) -> dict[str, float]:
     return {"ci_low": float(lo), "ci_high": float(hi)}
 
 
+def _merge_configs(configs: dict[str, dict]) -> dict:
+    """One configuration for runs made by several calls: a setting they share as it is, lists
+    (methods, seeds, ...) as their union in order of appearance, nested settings key by key,
+    and a setting they disagree on as ``{"differs": {run directory: value}}``."""
+    keys = list(dict.fromkeys(k for c in configs.values() for k in c))
+    out: dict = {}
+    for k in keys:
+        vals = {d: c.get(k) for d, c in configs.items()}
+        distinct = list({json.dumps(v, sort_keys=True) for v in vals.values()})
+        if len(distinct) == 1:
+            out[k] = next(iter(vals.values()))
+        elif all(isinstance(v, list) for v in vals.values()):
+            union = {json.dumps(x): x for v in vals.values() for x in v}
+            out[k] = list(union.values())
+        elif all(isinstance(v, dict) for v in vals.values()):
+            out[k] = _merge_configs(vals)
+        else:
+            out[k] = {"differs": vals}
+    return out
+
+
+def run_configs(out: str | Path, sources: Sequence[str | Path] = ()) -> dict[str, dict]:
+    """The ``config.json`` each benchmark run directory was made with (``out`` and the
+    ``--merge`` sources, ``DIR:METHOD,...`` read as DIR), by directory."""
+    found: dict[str, dict] = {}
+    for src in [str(out), *map(str, sources)]:
+        d = Path(src.partition(":")[0])
+        if (d / "config.json").exists():
+            found[str(d)] = json.loads((d / "config.json").read_text())
+    return found
+
+
 def summarize(out: str | Path, cfg: BenchmarkConfig,
-              include: list[str | Path] = ()) -> dict:
+              include: list[str | Path] = (), sources: Sequence[str | Path] = ()) -> dict:
     """Statistics of every predictions file in ``out``: benchmark.json, tables.md, curves.
 
     ``include``: earlier benchmark.json files whose combinations' rows are taken as they
@@ -521,7 +554,11 @@ def summarize(out: str | Path, cfg: BenchmarkConfig,
     if len(combos) > 1:
         rows += mean_over_combinations(rows, combos)
     rows = [{k: v for k, v in r.items() if k != DRAWS} for r in rows]
-    config = json.loads(json.dumps(asdict(cfg), default=str))
+    # what the runs were made with (their own config.json), not the flags of a
+    # --summarize-only call, which need not repeat them
+    made = run_configs(out, sources)
+    config = (_merge_configs(made) if made
+              else json.loads(json.dumps(asdict(cfg), default=str)))
     found: set[int] = set()
     for path in out.glob("predictions_*.npz"):
         with np.load(path) as z:  # the file's index only, no arrays read
@@ -529,6 +566,8 @@ def summarize(out: str | Path, cfg: BenchmarkConfig,
     if found:  # what the files hold (a --summarize-only call may not repeat --seeds)
         config["seeds"] = sorted(found)
     doc = {"config": config, "rows": rows}
+    if len(made) > 1:
+        doc["run_configs"] = made
     (out / "benchmark.json").write_text(json.dumps(doc, indent=1))
     (out / "tables.md").write_text(benchmark_tables(doc))
     main = "mean" if len(combos) > 1 else (combos[0] if combos else "")
