@@ -111,7 +111,7 @@ def test_w2e_ceiling_fit_fits_a_small_training_set(tmp_path):
     from w2e_ros.core.collect import CollectConfig, collect
 
     collect(CollectConfig(out=str(tmp_path / "data"), categories=["cabinet", "faucet", "window"],
-                          observations=2, interactions=24, primitives=("push",), workers=1))
+                          observations=3, interactions=24, primitives=("push",), workers=1))
     out = tmp_path / "fit"
     proc = subprocess.run([sys.executable, "-m", "w2e_ros.cli", "ceiling", "fit", "--data",
                            str(tmp_path / "data"), "--out", str(out), "--primitive", "push",
@@ -120,6 +120,6 @@ def test_w2e_ceiling_fit_fits_a_small_training_set(tmp_path):
                           capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stderr[-2000:]
     res = json.loads((out / "fit.json").read_text())
-    assert res["interactions"] >= 150
+    assert 150 <= res["interactions"] < 216  # whole observations, not all of them
     assert res["curve"][-1]["auroc"] > 0.8, res["curve"]
     assert res["curve"][-1]["train_loss"] < res["curve"][0]["train_loss"] + 0.05
