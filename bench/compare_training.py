@@ -105,9 +105,12 @@ def main() -> int:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    shown = ("caff_auroc", "csim_auroc", "novel_auroc", "novel_fscore")
+    shown = tuple(m for m in ("caff_auroc", "csim_auroc", "novel_auroc", "novel_fscore")
+                  if any(recs and f"val_{m}" in recs[0] for recs in curves.values())
+                  or any(f"val_{m}" in r for r in points.values()))
     colour = {label: f"C{i}" for i, label in enumerate([*curves, *points])}
-    fig, axes = plt.subplots(1, len(shown), figsize=(4 * len(shown), 3.4))
+    fig, axes = plt.subplots(1, len(shown), figsize=(4 * len(shown), 3.4), squeeze=False)
+    axes = axes[0]
     for ax, m in zip(axes, shown, strict=True):
         for label, recs in curves.items():
             if recs and f"val_{m}" in recs[0]:  # a where2act run has no csim group
