@@ -158,6 +158,9 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
                    help="hidden layers per head (the paper: 1); a resumed run keeps its own")
     p.add_argument("--xyz-features", action="store_true",
                    help="points carry their coordinates as input features (the reference)")
+    p.add_argument("--sa-npoint", type=int, nargs=4, default=None, metavar="S",
+                   help="centroids per set-abstraction level (default 512 128 32 8; the "
+                        "reference on 10,000 points: 1024 256 64 16)")
     p.add_argument("--local-k", type=int, default=0,
                    help="> 0: every point carries a descriptor of its k nearest points")
     p.add_argument("--resume", action="store_true", help="continue the run in --out")
@@ -198,7 +201,8 @@ def _run_train(a: argparse.Namespace) -> int:
     from w2e_ros.core.config import ModelConfig
 
     mcfg = ModelConfig(head_layers=a.head_layers, xyz_features=a.xyz_features,
-                       local_k=a.local_k)
+                       local_k=a.local_k, **({"sa_npoint": tuple(a.sa_npoint)} if a.sa_npoint
+                                             else {}))
     path = train(cfg, a.data, out, resume=a.resume, val_data=val, progress=not a.no_progress,
                  model_cfg=mcfg)
     if os.environ.get("RANK", "0") == "0":  # torchrun: process 0 speaks for the run
@@ -757,8 +761,15 @@ def _add_ceiling(sub: argparse._SubParsersAction) -> None:
                      help="hidden layers per head (the paper: 1)")
     fit.add_argument("--xyz-features", action="store_true",
                      help="points carry their coordinates as input features (the reference)")
+    fit.add_argument("--sa-npoint", type=int, nargs=4, default=None, metavar="S",
+                     help="centroids per set-abstraction level (default 512 128 32 8; the "
+                          "reference on 10,000 points: 1024 256 64 16)")
     fit.add_argument("--local-k", type=int, default=0,
                      help="> 0: every point carries a descriptor of its k nearest points")
+    fit.add_argument("--frozen-encoder", default="", metavar="MODEL_PT|random",
+                     help="fit only a fresh head, full batch, on the frozen features of this "
+                          "checkpoint (or of random initial weights): representation vs "
+                          "optimisation")
     fit.add_argument("--seed", type=int, default=0)
     fit.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     fit.set_defaults(func=_run_ceiling_fit)
@@ -777,13 +788,18 @@ def _run_ceiling_labels(a: argparse.Namespace) -> int:
 def _run_ceiling_fit(a: argparse.Namespace) -> int:
     from w2e_ros.core.ceiling import FitTestConfig, fit_test
 
+    import torch
+
+    torch.set_num_threads(a.threads)
     res = fit_test(FitTestConfig(
         data=a.data, out=a.out, primitive=a.primitive, method=a.method, combo=a.combo,
         interactions=a.interactions, steps=a.steps, eval_every=a.eval_every, seed=a.seed,
         train={"lr": a.lr, "flip_share": a.flip_share, "clouds_per_batch": a.clouds,
                "interactions_per_cloud": a.per_cloud, "threads": a.threads},
         model={"head_layers": a.head_layers, "xyz_features": a.xyz_features,
-               "local_k": a.local_k}))
+               "local_k": a.local_k, **({"sa_npoint": tuple(a.sa_npoint)} if a.sa_npoint
+                                        else {})},
+        frozen_encoder=a.frozen_encoder))
     for r in res["curve"]:
         print(f"step {r['step']:>6}  loss {r['train_loss']:.4f}  train AUROC {r['auroc']:.4f}  "
               f"AP {r['ap']:.4f}  ({r['seconds']:.0f} s)")
