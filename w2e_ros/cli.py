@@ -139,6 +139,9 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
                    help="share of each cloud's rows that are flipped-approach negatives")
     p.add_argument("--exclude-invalid", action="store_true",
                    help="train on valid trials only (default: invalid trials are failures)")
+    p.add_argument("--augment-yaw", action="store_true",
+                   help="turn each cloud and its actions by a random angle about the vertical "
+                        "(labels hold: physics is the same under a turn about gravity)")
     p.add_argument("--val-data", nargs="+", default=None,
                    help="collections with held-out instances (e.g. --split test of the "
                         "training categories): validation every --val-every steps, best "
@@ -182,7 +185,7 @@ def _run_train(a: argparse.Namespace) -> int:
                       weight_decay=a.weight_decay, sim_loss=a.sim_loss,
                       sim_weight=a.sim_weight, sim_grad_to_encoder=not a.sim_detach_encoder,
                       aff_share=a.aff_share, flip_share=a.flip_share,
-                      include_invalid=not a.exclude_invalid,
+                      include_invalid=not a.exclude_invalid, augment_yaw=a.augment_yaw,
                       clouds_per_batch=a.clouds, interactions_per_cloud=a.per_cloud,
                       seed=a.seed, threads=a.threads, log_every=a.log_every,
                       ckpt_every=a.ckpt_every, val_every=a.val_every, patience=a.patience,
@@ -786,9 +789,9 @@ def _run_ceiling_labels(a: argparse.Namespace) -> int:
 
 
 def _run_ceiling_fit(a: argparse.Namespace) -> int:
-    from w2e_ros.core.ceiling import FitTestConfig, fit_test
-
     import torch
+
+    from w2e_ros.core.ceiling import FitTestConfig, fit_test
 
     torch.set_num_threads(a.threads)
     res = fit_test(FitTestConfig(

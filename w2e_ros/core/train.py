@@ -156,6 +156,23 @@ def make_batch(data: InteractionData, rows: np.ndarray, aff_categories: tuple[st
     )
 
 
+def rotate_yaw(batch: Batch, angles: np.ndarray) -> Batch:
+    """The batch with cloud ``b`` and the actions on it turned by ``angles[b]`` about the
+    vertical axis. Physics is the same under a turn about gravity (the object, the camera and
+    the gripper turned together), so every label still holds: an augmentation that adds
+    views without simulating them."""
+    c, s_ = np.cos(angles), np.sin(angles)
+    rot = np.zeros((len(angles), 3, 3), np.float32)
+    rot[:, 0, 0], rot[:, 0, 1], rot[:, 1, 0], rot[:, 1, 1], rot[:, 2, 2] = c, -s_, s_, c, 1.0
+    r = torch.as_tensor(rot, device=batch.clouds.device)  # (B, 3, 3)
+    clouds = batch.clouds @ r.transpose(1, 2)
+    rr = r[batch.cloud_of]  # (K, 3, 3)
+    up, fwd = batch.actions[:, :3], batch.actions[:, 3:]
+    actions = torch.cat([(rr @ up.unsqueeze(-1)).squeeze(-1),
+                         (rr @ fwd.unsqueeze(-1)).squeeze(-1)], dim=1)
+    return replace(batch, clouds=clouds, actions=actions)
+
+
 class RunningAccuracy:
     """Per-interaction counters of the affordance head's correct / total predictions."""
 
@@ -503,7 +520,13 @@ class Trainer:
         rows, flip = self.sampler.sample()
         if self.dist.active:
             raise RuntimeError("data-parallel steps draw their batch in train_step")
-        return make_batch(self.data, rows, self.aff_cats, self.sim_cats, self.device, flip=flip)
+        return self._augment(make_batch(self.data, rows, self.aff_cats, self.sim_cats,
+                                        self.device, flip=flip))
+
+    def _augment(self, batch: Batch) -> Batch:
+        if not self.cfg.augment_yaw:
+            return batch
+        return rotate_yaw(batch, self.rng.uniform(0.0, 2 * np.pi, len(batch.clouds)))
 
     def _shard_batch(self) -> tuple[Batch, Shard]:
         """This process's clouds of the global batch (every cloud gives exactly
@@ -515,8 +538,13 @@ class Trainer:
         lo, hi = self.dist.rank * per, (self.dist.rank + 1) * per
         shard = Shard(self.dist.world, int(np.isin(cats, list(self.aff_cats)).sum()),
                       rows[sim], int(sim[:lo].sum()))
+        angles = (self.rng.uniform(0.0, 2 * np.pi, self.cfg.clouds_per_batch * self.dist.world)
+                  if self.cfg.augment_yaw else None)  # drawn for the global batch: same rng
         batch = make_batch(self.data, rows[lo:hi], self.aff_cats, self.sim_cats, self.device,
                            flip=flip[lo:hi])
+        if angles is not None:
+            lo = self.dist.rank * self.cfg.clouds_per_batch  # (a cloud drawn twice is one)
+            batch = rotate_yaw(batch, angles[lo:lo + len(batch.clouds)])
         return batch, shard
 
     def train_step(self, batch: Batch | None = None) -> dict[str, float]:
