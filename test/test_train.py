@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -600,3 +601,25 @@ def test_yaw_augmentation_turns_clouds_and_their_actions_together(data):
     torch.testing.assert_close(on.next_batch().clouds, again.next_batch().clouds)
     assert not torch.allclose(Trainer(_cfg(augment_yaw=True), data, SMALL, device=CPU)
                               .next_batch().clouds, b.clouds)
+
+
+def test_cosine_schedule_decays_to_its_floor_and_a_resumed_run_follows_it(tmp_path, data):
+    t = Trainer(_cfg(steps=100, lr=1e-3, lr_schedule="cosine"), data, SMALL, device=CPU)
+    assert t.learning_rate() == pytest.approx(1e-3)
+    t.step = 50
+    assert t.learning_rate() == pytest.approx(1e-3 * (0.05 + 0.95 * 0.5))
+    t.step = 100
+    assert t.learning_rate() == pytest.approx(5e-5)
+    t.step = 0
+    t.train_step()
+    assert t.opt.param_groups[0]["lr"] == pytest.approx(1e-3)
+    assert Trainer(_cfg(), data, SMALL, device=CPU).learning_rate() == _cfg().lr  # constant
+    # the rate is a function of the step: a run resumed at step 2 uses step 2's rate
+    data.save_shard(tmp_path / "data" / "shard-00000.npz")
+    cfg = _cfg(steps=4, lr_schedule="cosine", ckpt_every=2)
+    train(replace(cfg, steps=2), tmp_path / "data", tmp_path / "run", progress=False,
+          model_cfg=SMALL)
+    resumed = Trainer(cfg, data, SMALL, device=CPU)
+    resumed.resume(tmp_path / "run")
+    assert resumed.step == 2
+    assert resumed.learning_rate() == pytest.approx(1e-3 * (0.05 + 0.95 * 0.5))

@@ -123,6 +123,8 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
                    help="clouds (encoder passes) per batch; under torchrun per process")
     p.add_argument("--per-cloud", type=int, default=32, help="interactions per cloud")
     p.add_argument("--lr", type=float, default=1e-3)
+    p.add_argument("--lr-schedule", default="constant", choices=["constant", "cosine"],
+                   help="cosine: from --lr down to 5 %% of it at --steps")
     p.add_argument("--weight-decay", type=float, default=1e-5)
     p.add_argument("--sim-loss", default="bce", choices=["bce", "l1"],
                    help="similarity loss to the running accuracy (reference code: bce)")
@@ -186,6 +188,7 @@ def _run_train(a: argparse.Namespace) -> int:
                       sim_weight=a.sim_weight, sim_grad_to_encoder=not a.sim_detach_encoder,
                       aff_share=a.aff_share, flip_share=a.flip_share,
                       include_invalid=not a.exclude_invalid, augment_yaw=a.augment_yaw,
+                      lr_schedule=a.lr_schedule,
                       clouds_per_batch=a.clouds, interactions_per_cloud=a.per_cloud,
                       seed=a.seed, threads=a.threads, log_every=a.log_every,
                       ckpt_every=a.ckpt_every, val_every=a.val_every, patience=a.patience,

@@ -83,6 +83,8 @@ class TrainConfig:
     sim_grad_to_encoder: bool = True  # the similarity loss also shapes the shared encoder
     include_invalid: bool = True  # invalid trials are negatives (they move nothing)
     augment_yaw: bool = False  # turn each cloud and its actions about the vertical at random
+    lr_schedule: str = "constant"  # constant | cosine (to lr_min_scale x lr at ``steps``)
+    lr_min_scale: float = 0.05
     aff_share: float = 1.0  # share of each batch's clouds from C_aff (w2e; others equal;
     # the reference's joint training: 0.5)
     flip_share: float = 0.25  # per cloud: flipped-approach copies, labelled failure (§8)
