@@ -101,6 +101,26 @@ def _backend(a: argparse.Namespace, workers: int) -> contextlib.closing[Backend]
     return contextlib.closing(make_backend(a.backend, workers, a.address))
 
 
+def _add_network_args(p: argparse.ArgumentParser) -> None:
+    """The network's options (``ModelConfig``) that a run may change from the default."""
+    p.add_argument("--head-layers", type=int, default=1,
+                   help="hidden layers per head (the paper: 1); a resumed run keeps its own")
+    p.add_argument("--xyz-features", action="store_true",
+                   help="points carry their coordinates as input features (the reference)")
+    p.add_argument("--sa-npoint", type=int, nargs=4, default=None, metavar="S",
+                   help="centroids per set-abstraction level (default 512 128 32 8; the "
+                        "reference on 10,000 points: 1024 256 64 16)")
+    p.add_argument("--local-k", type=int, default=0,
+                   help="> 0: every point carries a descriptor of its k nearest points")
+
+
+def _network_overrides(a: argparse.Namespace) -> dict:
+    out = {"head_layers": a.head_layers, "xyz_features": a.xyz_features, "local_k": a.local_k}
+    if a.sa_npoint:
+        out["sa_npoint"] = tuple(a.sa_npoint)
+    return out
+
+
 def _add_train(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "train", help="train the affordance + similarity model (or a baseline) on collected data",
@@ -159,15 +179,7 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--patience", type=int, default=6,
                    help="stop after this many validations without a new best, unless the "
                         "scores over them still trend upwards (slope above its standard error)")
-    p.add_argument("--head-layers", type=int, default=1,
-                   help="hidden layers per head (the paper: 1); a resumed run keeps its own")
-    p.add_argument("--xyz-features", action="store_true",
-                   help="points carry their coordinates as input features (the reference)")
-    p.add_argument("--sa-npoint", type=int, nargs=4, default=None, metavar="S",
-                   help="centroids per set-abstraction level (default 512 128 32 8; the "
-                        "reference on 10,000 points: 1024 256 64 16)")
-    p.add_argument("--local-k", type=int, default=0,
-                   help="> 0: every point carries a descriptor of its k nearest points")
+    _add_network_args(p)
     p.add_argument("--resume", action="store_true", help="continue the run in --out")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
@@ -206,9 +218,7 @@ def _run_train(a: argparse.Namespace) -> int:
         val = val.select(primitive=a.primitive)
     from w2e_ros.core.config import ModelConfig
 
-    mcfg = ModelConfig(head_layers=a.head_layers, xyz_features=a.xyz_features,
-                       local_k=a.local_k, **({"sa_npoint": tuple(a.sa_npoint)} if a.sa_npoint
-                                             else {}))
+    mcfg = ModelConfig(**_network_overrides(a))
     path = train(cfg, a.data, out, resume=a.resume, val_data=val, progress=not a.no_progress,
                  model_cfg=mcfg)
     if os.environ.get("RANK", "0") == "0":  # torchrun: process 0 speaks for the run
@@ -763,15 +773,7 @@ def _add_ceiling(sub: argparse._SubParsersAction) -> None:
     fit.add_argument("--flip-share", type=float, default=TrainConfig.flip_share)
     fit.add_argument("--clouds", type=int, default=TrainConfig.clouds_per_batch)
     fit.add_argument("--per-cloud", type=int, default=TrainConfig.interactions_per_cloud)
-    fit.add_argument("--head-layers", type=int, default=1,
-                     help="hidden layers per head (the paper: 1)")
-    fit.add_argument("--xyz-features", action="store_true",
-                     help="points carry their coordinates as input features (the reference)")
-    fit.add_argument("--sa-npoint", type=int, nargs=4, default=None, metavar="S",
-                     help="centroids per set-abstraction level (default 512 128 32 8; the "
-                          "reference on 10,000 points: 1024 256 64 16)")
-    fit.add_argument("--local-k", type=int, default=0,
-                     help="> 0: every point carries a descriptor of its k nearest points")
+    _add_network_args(fit)
     fit.add_argument("--frozen-encoder", default="", metavar="MODEL_PT|random",
                      help="fit only a fresh head, full batch, on the frozen features of this "
                           "checkpoint (or of random initial weights): representation vs "
@@ -802,10 +804,7 @@ def _run_ceiling_fit(a: argparse.Namespace) -> int:
         interactions=a.interactions, steps=a.steps, eval_every=a.eval_every, seed=a.seed,
         train={"lr": a.lr, "flip_share": a.flip_share, "clouds_per_batch": a.clouds,
                "interactions_per_cloud": a.per_cloud, "threads": a.threads},
-        model={"head_layers": a.head_layers, "xyz_features": a.xyz_features,
-               "local_k": a.local_k, **({"sa_npoint": tuple(a.sa_npoint)} if a.sa_npoint
-                                        else {})},
-        frozen_encoder=a.frozen_encoder))
+        model=_network_overrides(a), frozen_encoder=a.frozen_encoder))
     for r in res["curve"]:
         print(f"step {r['step']:>6}  loss {r['train_loss']:.4f}  train AUROC {r['auroc']:.4f}  "
               f"AP {r['ap']:.4f}  ({r['seconds']:.0f} s)")
