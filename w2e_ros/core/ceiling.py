@@ -204,10 +204,23 @@ def fit_subset(data: InteractionData, n: int, seed: int) -> InteractionData:
     return data.subset(np.isin(data.obs_index, keep))
 
 
-def head_fit(cfg: FitTestConfig, sub: InteractionData) -> dict:
+def _record(step: int, loss: float, probs: np.ndarray, sub: InteractionData,
+            t0: float) -> dict:
+    """One point of a fit curve: how well ``probs`` rank the rows trained on."""
+    met = classification_metrics(probs, sub.success)
+    rec = {"step": step, "train_loss": float(loss), "auroc": met["auroc"], "ap": met["ap"],
+           "fscore": met["fscore"], "valid_auroc": auroc(probs[sub.valid], sub.success[sub.valid]),
+           "seconds": time.perf_counter() - t0}
+    log.info("fit step %d: loss %.4f train AUROC %.4f AP %.4f", step, rec["train_loss"],
+             rec["auroc"], rec["ap"])
+    return rec
+
+
+def head_fit(cfg: FitTestConfig, sub: InteractionData) -> tuple[list[dict], np.ndarray]:
     """A fresh head (the model config's) fitted full-batch, class-balanced, on the frozen
     features of ``cfg.frozen_encoder`` (a checkpoint, or ``random`` initial weights): can the
-    encoder's features separate the rows at all? Separates representation from optimisation."""
+    encoder's features separate the rows at all? Separates representation from optimisation.
+    Returns the curve and the final probabilities."""
     import torch.nn.functional as F
 
     from w2e_ros.core.actions import encode_rotation
@@ -229,7 +242,7 @@ def head_fit(cfg: FitTestConfig, sub: InteractionData) -> dict:
     opt = torch.optim.Adam(head.parameters(), lr=cfg.train.get("lr", 1e-3))
     pos = float(y.mean())
     w = torch.where(y > 0, 0.5 / max(pos, 1e-6), 0.5 / max(1 - pos, 1e-6))
-    curve = []
+    curve: list[dict] = []
     t0 = time.perf_counter()
     for step in range(1, cfg.steps + 1):
         loss = F.binary_cross_entropy_with_logits(head(f, a), y, weight=w)
@@ -238,69 +251,57 @@ def head_fit(cfg: FitTestConfig, sub: InteractionData) -> dict:
         opt.step()
         if step % cfg.eval_every == 0 or step == cfg.steps:
             with torch.no_grad():
-                p = torch.sigmoid(head(f, a)).numpy()
-            met = classification_metrics(p, sub.success)
-            curve.append({"step": step, "train_loss": float(loss.detach()),
-                          "auroc": met["auroc"], "ap": met["ap"], "fscore": met["fscore"],
-                          "valid_auroc": auroc(p[sub.valid], sub.success[sub.valid]),
-                          "seconds": time.perf_counter() - t0})
-            log.info("head fit step %d: loss %.4f train AUROC %.4f", step,
-                     curve[-1]["train_loss"], curve[-1]["auroc"])
-    return {"curve": curve, "per_category_auroc": {}, "final_auroc": curve[-1]["auroc"]}
+                probs = torch.sigmoid(head(f, a)).numpy()
+            curve.append(_record(step, float(loss.detach()), probs, sub, t0))
+    return curve, probs
 
 
-def fit_test(cfg: FitTestConfig, progress: bool = True) -> dict:
-    """Train a fresh model on ``cfg.interactions`` interactions and score it on them.
-
-    The model is judged on exactly the rows it trained on (flipped copies aside): the
-    question is only whether it can fit them. Writes ``fit.json`` under ``cfg.out``."""
+def end_to_end_fit(cfg: FitTestConfig, sub: InteractionData,
+                   progress: bool = True) -> tuple[list[dict], np.ndarray]:
+    """The whole network trained as ``w2e train`` trains it (sampled batches, flipped
+    copies), scored every ``eval_every`` steps on the rows it trained on."""
     from tqdm import tqdm
 
     from w2e_ros.core.predict import predict_interactions
-    from w2e_ros.core.train import Trainer, load_training_data
+    from w2e_ros.core.train import Trainer
 
-    data = load_training_data(cfg.data, cfg.method, cfg.combo, cfg.primitive)
-    sub = fit_subset(data, cfg.interactions, cfg.seed)
-    if cfg.frozen_encoder:
-        result = {"config": asdict(cfg), "interactions": sub.num_interactions,
-                  "observations": sub.num_observations, "positives": int(sub.success.sum()),
-                  **head_fit(cfg, sub)}
-        out = Path(cfg.out)
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "fit.json").write_text(json.dumps(result, indent=1))
-        return result
     tcfg = TrainConfig(method=cfg.method, combo=cfg.combo, primitive=cfg.primitive,
                        steps=cfg.steps, seed=cfg.seed, **cfg.train)
     torch.set_num_threads(tcfg.threads)
-    mcfg = ModelConfig(**{"num_points": int(sub.points.shape[1]), **cfg.model})
-    trainer = Trainer(tcfg, sub, mcfg)
-    log.info("fit test: %d interactions on %d clouds (%.1f%% positive), %d steps",
-             sub.num_interactions, sub.num_observations, 100 * sub.positive_rate(), cfg.steps)
+    trainer = Trainer(tcfg, sub, ModelConfig(**{"num_points": int(sub.points.shape[1]),
+                                                **cfg.model}))
     curve: list[dict] = []
     losses: list[float] = []
     t0 = time.perf_counter()
     for step in tqdm(range(1, cfg.steps + 1), disable=not progress, unit="step"):
-        stats = trainer.train_step()
-        losses.append(stats["loss_aff"])
+        losses.append(trainer.train_step()["loss_aff"])
         if step % cfg.eval_every == 0 or step == cfg.steps:
-            aff, _ = predict_interactions(trainer.model, sub, cache=None)
-            met = classification_metrics(aff, sub.success)
-            rec = {"step": step, "train_loss": float(np.mean(losses)),
-                   "auroc": met["auroc"], "ap": met["ap"], "fscore": met["fscore"],
-                   "valid_auroc": auroc(aff[sub.valid], sub.success[sub.valid]),
-                   "seconds": time.perf_counter() - t0}
-            curve.append(rec)
+            probs, _ = predict_interactions(trainer.model, sub, cache=None)
+            curve.append(_record(step, float(np.mean(losses)), probs, sub, t0))
             losses = []
-            log.info("fit step %d: loss %.4f train AUROC %.4f AP %.4f", step, rec["train_loss"],
-                     rec["auroc"], rec["ap"])
-    aff, _ = predict_interactions(trainer.model, sub, cache=None)
-    per_cat = {str(c): auroc(aff[m], sub.success[m])
-               for c in np.unique(sub.interaction_category)
-               for m in [sub.interaction_category == c]}
-    result = {"config": asdict(cfg), "train_config": asdict(tcfg),
-              "interactions": sub.num_interactions, "observations": sub.num_observations,
-              "positives": int(sub.success.sum()), "curve": curve,
-              "final_auroc": curve[-1]["auroc"], "per_category_auroc": per_cat,
+    return curve, probs
+
+
+def fit_test(cfg: FitTestConfig, progress: bool = True) -> dict:
+    """Fit ``cfg.interactions`` training interactions (end to end, or a head on frozen
+    features) and score the model on exactly those rows (flipped copies aside): the question
+    is only whether it can fit them. Writes ``fit.json`` under ``cfg.out``."""
+    from w2e_ros.core.train import load_training_data
+
+    data = load_training_data(cfg.data, cfg.method, cfg.combo, cfg.primitive)
+    sub = fit_subset(data, cfg.interactions, cfg.seed)
+    log.info("fit test: %d interactions on %d clouds (%.1f%% positive), %d steps%s",
+             sub.num_interactions, sub.num_observations, 100 * sub.positive_rate(), cfg.steps,
+             f", head on frozen {cfg.frozen_encoder} features" if cfg.frozen_encoder else "")
+    t0 = time.perf_counter()
+    curve, probs = (head_fit(cfg, sub) if cfg.frozen_encoder
+                    else end_to_end_fit(cfg, sub, progress))
+    cats = sub.interaction_category
+    result = {"config": asdict(cfg), "interactions": sub.num_interactions,
+              "observations": sub.num_observations, "positives": int(sub.success.sum()),
+              "curve": curve, "final_auroc": curve[-1]["auroc"],
+              "per_category_auroc": {str(c): auroc(probs[cats == c], sub.success[cats == c])
+                                     for c in np.unique(cats)},
               "seconds": time.perf_counter() - t0}
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -166,11 +166,9 @@ def rotate_yaw(batch: Batch, angles: np.ndarray) -> Batch:
     rot[:, 0, 0], rot[:, 0, 1], rot[:, 1, 0], rot[:, 1, 1], rot[:, 2, 2] = c, -s_, s_, c, 1.0
     r = torch.as_tensor(rot, device=batch.clouds.device)  # (B, 3, 3)
     clouds = batch.clouds @ r.transpose(1, 2)
-    rr = r[batch.cloud_of]  # (K, 3, 3)
-    up, fwd = batch.actions[:, :3], batch.actions[:, 3:]
-    actions = torch.cat([(rr @ up.unsqueeze(-1)).squeeze(-1),
-                         (rr @ fwd.unsqueeze(-1)).squeeze(-1)], dim=1)
-    return replace(batch, clouds=clouds, actions=actions)
+    # each action's two vectors (up, forward) as rows, turned with its cloud's rotation
+    actions = batch.actions.view(-1, 2, 3) @ r[batch.cloud_of].transpose(1, 2)  # (K, 2, 3)
+    return replace(batch, clouds=clouds, actions=actions.reshape(-1, 6))
 
 
 class RunningAccuracy:
