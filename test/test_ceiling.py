@@ -139,3 +139,46 @@ def test_a_fresh_head_on_frozen_random_features_fits_what_they_separate(tmp_path
     assert res["curve"][-1]["auroc"] > 0.95
     assert res["curve"][-1]["train_loss"] < res["curve"][0]["train_loss"]
     assert json.loads((tmp_path / "fit" / "fit.json").read_text())["final_auroc"] > 0.95
+
+
+def test_oracle_summary_scores_the_neighbourhood_rate_per_category():
+    """The local oracle's AUROC: a neighbourhood rate that orders the labels scores 1, one
+    that reverses them 0, per category and in the mean."""
+    from w2e_ros.core.ceiling import _radius_key, summarize_oracle
+
+    k1, k2 = _radius_key(0.003), _radius_key(0.01)
+    trials = []
+    for c in ("a", "b"):
+        for i, lab in enumerate([True, True, False, False, False]):
+            trials.append({"primitive": "pull", "category": c, "label": lab,
+                           k1: (0.9 if lab else 0.1) + 0.01 * i,
+                           k2: (0.1 if lab else 0.9) + 0.01 * i})
+    s = summarize_oracle(trials, (0.003, 0.01), boot=50)["pull"]
+    assert s["n"] == 10 and s["positives"] == 4
+    assert s[k1][0] == pytest.approx(1.0) and s[k2][0] == pytest.approx(0.0)
+    assert s[f"{k1}_pooled"][0] == pytest.approx(1.0)
+    assert s["categories"]["b"][k1] == pytest.approx(1.0)
+    assert s["categories"]["a"]["n"] == 5
+
+
+@pytest.mark.slow
+def test_w2e_ceiling_oracle_scores_simulated_trials(tmp_path):
+    """The command as typed on a real collection: tiny radii keep the stored outcome, so
+    the oracle ranks the stored labels far above chance."""
+    from w2e_ros.core.collect import CollectConfig, collect
+
+    collect(CollectConfig(out=str(tmp_path / "data"), categories=["cabinet"], split="test",
+                          observations=3, interactions=24, primitives=("push",), workers=1))
+    out = tmp_path / "oracle"
+    proc = subprocess.run([sys.executable, "-m", "w2e_ros.cli", "ceiling", "oracle", "--data",
+                           str(tmp_path / "data"), "--out", str(out), "--trials", "12",
+                           "--primitives", "push", "--radii", "0.0005", "--samples", "2"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    res = json.loads((out / "oracle.json").read_text())["primitives"]["push"]
+    assert res["positives"] > 0 and res["n"] > res["positives"]
+    assert res["within_0.5mm"][0] >= 0.9
+    bad = subprocess.run([sys.executable, "-m", "w2e_ros.cli", "ceiling", "oracle", "--data",
+                          str(tmp_path / "data"), "--samples", "0"],
+                         capture_output=True, text=True, timeout=120)
+    assert bad.returncode != 0 and "--samples" in bad.stderr

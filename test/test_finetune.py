@@ -226,3 +226,25 @@ def test_a_balanced_similarity_stays_balanced_while_fine_tuning(novel):
                                                       weight=weight)
         assert losses[balanced] == pytest.approx(float(expected), rel=1e-5)
     assert losses[True] != pytest.approx(losses[False], rel=1e-3)
+
+
+def test_default_fine_tuning_fits_what_it_explored():
+    """Issue 26: after a round the model must fit its own explored set (AUROC >= 0.95).
+    Real simulator pulls (the shipped replay pack) on the shipped pull model: the default
+    fits them; the former default (L2-SP anchor 0.1, at most 500 steps) stopped near 0.8."""
+    from w2e_ros.core.data import InteractionData
+    from w2e_ros.core.model import load_model
+    from w2e_ros.paths import default_checkpoint, default_replay_pack
+
+    data = InteractionData.load(default_replay_pack())
+    data = data.subset(data.primitive == "pull")
+    assert data.success.sum() >= 5
+    fits = {}
+    for name, kw in (("default", {}), ("anchored", {"anchor": 0.1, "finetune_steps": 500})):
+        model, _ = load_model(default_checkpoint("pull"), "cpu")
+        exp = W2EExplorer(model, ExploreConfig(**kw), None, SIM, (), seed=0,
+                          features=FeatureCache())
+        exp.add_data(data)
+        fits[name] = exp.fit()["fit_auroc"]
+    assert fits["default"] >= 0.95, fits
+    assert fits["anchored"] < 0.9, fits

@@ -746,10 +746,12 @@ def _run_replay_pack(a: argparse.Namespace) -> int:
 
 def _add_ceiling(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
-        "ceiling", help="diagnose the model's ceiling: label smoothness and a fit test",
+        "ceiling", help="diagnose the model's ceiling: labels, a local oracle, a fit test",
         description="labels: replay stored valid trials as they were, with the contact moved "
                     "3 / 10 mm along the surface and the approach turned 5 / 15 deg, and "
-                    "report the share of labels kept. fit: train a fresh model on ~2,000 "
+                    "report the share of labels kept. oracle: score each trial by the success "
+                    "rate of contacts around it (what a model that cannot place the contact "
+                    "finer than r could know). fit: train a fresh model on ~2,000 "
                     "training interactions and report how well it ranks them (train AUROC).")
     cs = p.add_subparsers(dest="check", required=True)
     lab = cs.add_parser("labels", help="label smoothness of the simulator")
@@ -760,6 +762,20 @@ def _add_ceiling(sub: argparse._SubParsersAction) -> None:
                      choices=["push", "pull"])
     lab.add_argument("--seed", type=int, default=0)
     lab.set_defaults(func=_run_ceiling_labels)
+    orc = cs.add_parser("oracle", help="how well the outcomes around a contact predict it")
+    orc.add_argument("--data", required=True,
+                     help="collection of held-out instances whose valid trials are asked about")
+    orc.add_argument("--out", default="results/ceiling_oracle")
+    orc.add_argument("--trials", type=int, default=200, help="valid trials per primitive")
+    orc.add_argument("--primitives", nargs="+", default=["push", "pull"],
+                     choices=["push", "pull"])
+    orc.add_argument("--radii", nargs="+", type=float, default=[0.003, 0.010, 0.023],
+                     help="disc radii along the surface (m); 0.023 is the point spacing of "
+                          "2,048-point clouds")
+    orc.add_argument("--samples", type=int, default=8,
+                     help="perturbed contacts per trial and radius")
+    orc.add_argument("--seed", type=int, default=0)
+    orc.set_defaults(func=_run_ceiling_oracle)
     fit = cs.add_parser("fit", help="can the network fit a small training set?")
     fit.add_argument("--data", required=True, help="training collection")
     fit.add_argument("--out", default="results/ceiling_fit")
@@ -790,6 +806,21 @@ def _run_ceiling_labels(a: argparse.Namespace) -> int:
                                             primitives=tuple(a.primitives), seed=a.seed))
     print(labels_table(res))
     print(f"{res['seconds']:.0f} s; written to {a.out}/labels.json and labels.md")
+    return 0
+
+
+def _run_ceiling_oracle(a: argparse.Namespace) -> int:
+    from w2e_ros.core.ceiling import OracleConfig, local_oracle, oracle_table
+
+    if a.samples < 1 or a.trials < 1 or any(r <= 0 for r in a.radii):
+        raise SystemExit("w2e ceiling oracle: --trials and --samples must be >= 1 and every "
+                         "radius > 0")
+    cfg = OracleConfig(data=a.data, out=a.out, trials_per_primitive=a.trials,
+                       primitives=tuple(a.primitives), radii=tuple(a.radii),
+                       samples=a.samples, seed=a.seed)
+    res = local_oracle(cfg)
+    print(oracle_table(res, cfg.radii))
+    print(f"{res['seconds']:.0f} s; written to {a.out}/oracle.json and oracle.md")
     return 0
 
 

@@ -94,13 +94,38 @@ def _pick_trials(data: InteractionData, primitive: str, n: int, positive_share: 
     return np.sort(np.concatenate(chosen)) if chosen else np.zeros(0, np.int64)
 
 
+class _StoredTrial:
+    """One stored trial, ready to be executed again as it was or perturbed."""
+
+    def __init__(self, data: InteractionData, r: int) -> None:
+        from w2e_ros.core.sim_world import Target
+
+        o = int(data.obs_index[r])
+        self.target = Target(str(data.category[o]), int(data.instance[o]), int(data.obs_seed[o]))
+        self.action = Action(point=data.points[o, data.point_index[r]].astype(np.float64),
+                             up=data.up[r].astype(np.float64),
+                             forward=data.forward[r].astype(np.float64),
+                             primitive=str(data.primitive[r]))
+        self.normal = data.normals[o, data.point_index[r]]
+        self.seed = int(data.trial_seed[r])
+
+    def run(self, world, shift: float, turn_deg: float, rng: np.random.Generator) -> bool:
+        """The outcome of the perturbed trial; an exploding trial counts as a failure."""
+        act = perturb(self.action, self.normal, shift, turn_deg, rng)
+        try:
+            return bool(world.execute(self.target, act, seed=self.seed).success)
+        except Exception as exc:
+            log.warning("trial on %s raised: %s", self.target.name, exc)
+            return False
+
+
 def label_smoothness(cfg: LabelCheckConfig, world=None) -> dict:
     """Replay and perturb stored trials; per primitive and category, the share of labels kept.
 
     Writes ``labels.json`` and ``labels.md`` under ``cfg.out``."""
     from tqdm import tqdm
 
-    from w2e_ros.core.sim_world import SimWorld, Target
+    from w2e_ros.core.sim_world import SimWorld
 
     data = InteractionData.load(cfg.data)
     world = world or SimWorld(num_points=int(data.points.shape[1]))
@@ -110,22 +135,11 @@ def label_smoothness(cfg: LabelCheckConfig, world=None) -> dict:
     for prim in cfg.primitives:
         picked = _pick_trials(data, prim, cfg.trials_per_primitive, cfg.positive_share, rng)
         for r in tqdm(picked, desc=f"labels {prim}", unit="trial"):
-            o = int(data.obs_index[r])
-            target = Target(str(data.category[o]), int(data.instance[o]), int(data.obs_seed[o]))
-            base = Action(point=data.points[o, data.point_index[r]].astype(np.float64),
-                          up=data.up[r].astype(np.float64),
-                          forward=data.forward[r].astype(np.float64), primitive=prim)
-            normal = data.normals[o, data.point_index[r]]
-            row = {"primitive": prim, "category": target.category, "row": int(r),
+            trial = _StoredTrial(data, int(r))
+            row = {"primitive": prim, "category": trial.target.category, "row": int(r),
                    "label": bool(data.success[r])}
             for name, shift, turn in PERTURBATIONS:
-                act = perturb(base, normal, shift, turn, rng)
-                try:
-                    res = world.execute(target, act, seed=int(data.trial_seed[r]))
-                    row[name] = bool(res.success)
-                except Exception as exc:  # an exploding trial: its label is "failure"
-                    log.warning("trial %s on %s raised: %s", name, target.name, exc)
-                    row[name] = False
+                row[name] = trial.run(world, shift, turn, rng)
             rows_out.append(row)
     result = summarize_labels(rows_out)
     result["seconds"] = time.perf_counter() - t0
@@ -170,6 +184,120 @@ def labels_table(result: dict) -> str:
             vals = " | ".join(f"{100 * cell[n]:.1f} / {100 * cell[n + '_pos']:.1f}"
                               for n in names)
             lines.append(f"| {g} | {cell['n']} ({cell['positives']}) | {vals} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+@dataclass
+class OracleConfig:
+    data: str  # a collection of held-out instances (test or explore split)
+    out: str
+    trials_per_primitive: int = 200
+    primitives: tuple[str, ...] = ("push", "pull")
+    radii: tuple[float, ...] = (0.003, 0.010, 0.023)  # m; 0.023 = the clouds' point spacing
+    samples: int = 8  # perturbed contacts per trial and radius
+    positive_share: float = 0.5
+    boot: int = 300
+    seed: int = 0
+
+
+def local_oracle(cfg: OracleConfig, world=None) -> dict:
+    """The AUROC of a predictor that knows the simulator's outcome everywhere within ``r`` of
+    the asked contact but not where in that disc the contact is.
+
+    A network sees the surface only through the cloud's points (23 mm apart at 2,048 points),
+    so it cannot place a contact on the real geometry more finely than that. Its best
+    prediction is then about the success rate of the contacts around the asked one: here
+    ``samples`` contacts drawn uniformly in a disc of radius ``r`` along the surface (the
+    stored contact itself excluded) give that rate, scored against the stored labels. A
+    rough ceiling, not a bound: a network may read more from the points' arrangement, and
+    ``samples`` draws make the rate coarse. Writes ``oracle.json`` and ``oracle.md``."""
+    from tqdm import tqdm
+
+    from w2e_ros.core.sim_world import SimWorld
+
+    data = InteractionData.load(cfg.data)
+    world = world or SimWorld(num_points=int(data.points.shape[1]))
+    rng = np.random.default_rng(cfg.seed)
+    trials: list[dict] = []
+    t0 = time.perf_counter()
+    for prim in cfg.primitives:
+        picked = _pick_trials(data, prim, cfg.trials_per_primitive, cfg.positive_share, rng)
+        for r in tqdm(picked, desc=f"oracle {prim}", unit="trial"):
+            trial = _StoredTrial(data, int(r))
+            row = {"primitive": prim, "category": trial.target.category, "row": int(r),
+                   "label": bool(data.success[r])}
+            for radius in cfg.radii:
+                # uniform over the disc: the distance's square is uniform
+                dist = radius * np.sqrt(rng.uniform(size=cfg.samples))
+                row[_radius_key(radius)] = float(np.mean([trial.run(world, d, 0.0, rng)
+                                                          for d in dist]))
+            trials.append(row)
+    result = {"primitives": summarize_oracle(trials, cfg.radii, cfg.boot),
+              "seconds": time.perf_counter() - t0, "config": asdict(cfg)}
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "oracle.json").write_text(json.dumps({**result, "trials": trials}, indent=1))
+    (out / "oracle.md").write_text(oracle_table(result, cfg.radii))
+    return result
+
+
+def _radius_key(radius: float) -> str:
+    return f"within_{1000 * radius:g}mm"
+
+
+def mean_category_auroc(prob: np.ndarray, y: np.ndarray, cats: np.ndarray) -> float:
+    """The mean of the per-category AUROCs (how the training score weighs categories)."""
+    return float(np.nanmean([auroc(prob[cats == c], y[cats == c]) for c in np.unique(cats)]))
+
+
+def summarize_oracle(trials: list[dict], radii: tuple[float, ...], boot: int = 300) -> dict:
+    """Per primitive: the local oracle's AUROC per category, their mean and the pooled AUROC
+    (the novel-category form; its category mix is the sample's, not the data's), with 95 %
+    intervals resampling trials."""
+    from w2e_ros.core.metrics import bootstrap_ci
+
+    out: dict = {}
+    for prim in sorted({t["primitive"] for t in trials}):
+        pr = [t for t in trials if t["primitive"] == prim]
+        y = np.array([t["label"] for t in pr])
+        cats = np.array([t["category"] for t in pr])
+        table: dict = {"n": len(pr), "positives": int(y.sum()),
+                       "categories": {str(c): {"n": int((cats == c).sum()),
+                                               "positives": int(y[cats == c].sum())}
+                                      for c in np.unique(cats)}}
+        for radius in radii:
+            k = _radius_key(radius)
+            p = np.array([t[k] for t in pr])
+            table[k] = bootstrap_ci(
+                lambda rows, p=p, y=y, cats=cats: mean_category_auroc(p[rows], y[rows], cats[rows]),
+                np.arange(len(pr)), boot)
+            table[f"{k}_pooled"] = bootstrap_ci(lambda rows, p=p, y=y: auroc(p[rows], y[rows]),
+                                                np.arange(len(pr)), boot)
+            for c, cell in table["categories"].items():
+                cell[k] = auroc(p[cats == c], y[cats == c])
+        out[prim] = table
+    return out
+
+
+def oracle_table(result: dict, radii: tuple[float, ...]) -> str:
+    keys = [_radius_key(r) for r in radii]
+    lines = ["AUROC (%) of the success rate of contacts within r of the asked one (the local "
+             "oracle), against the stored labels; mean over categories with a 95 % interval "
+             "over trials, then per category.", ""]
+    for prim, t in result["primitives"].items():
+        lines += [f"### {prim} ({t['n']} trials, {t['positives']} successes)", "",
+                  "| category | n (pos) | " + " | ".join(keys) + " |",
+                  "|---" * (len(keys) + 2) + "|",
+                  "| mean | | " + " | ".join(
+                      "{:.1f} [{:.1f}, {:.1f}]".format(*(100 * v for v in t[k]))
+                      for k in keys) + " |",
+                  "| pooled | | " + " | ".join(
+                      "{:.1f} [{:.1f}, {:.1f}]".format(*(100 * v for v in t[f"{k}_pooled"]))
+                      for k in keys) + " |"]
+        for c, cell in t["categories"].items():
+            lines.append(f"| {c} | {cell['n']} ({cell['positives']}) | "
+                         + " | ".join(f"{100 * cell[k]:.1f}" for k in keys) + " |")
         lines.append("")
     return "\n".join(lines)
 
