@@ -110,6 +110,8 @@ def _add_network_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sa-npoint", type=int, nargs=4, default=None, metavar="S",
                    help="centroids per set-abstraction level (default 512 128 32 8; the "
                         "reference on 10,000 points: 1024 256 64 16)")
+    p.add_argument("--sa-radius", type=float, nargs=4, default=None, metavar="R",
+                   help="ball radius (m) per set-abstraction level (default 0.1 0.2 0.4 0.8)")
     p.add_argument("--local-k", type=int, default=0,
                    help="> 0: every point carries a descriptor of its k nearest points")
 
@@ -118,6 +120,10 @@ def _network_overrides(a: argparse.Namespace) -> dict:
     out = {"head_layers": a.head_layers, "xyz_features": a.xyz_features, "local_k": a.local_k}
     if a.sa_npoint:
         out["sa_npoint"] = tuple(a.sa_npoint)
+    if a.sa_radius:
+        if any(r <= 0 for r in a.sa_radius):
+            raise SystemExit("--sa-radius: every radius must be > 0")
+        out["sa_radius"] = tuple(a.sa_radius)
     return out
 
 
