@@ -299,13 +299,14 @@ def test_typed_parameters_are_declared_with_defaults_and_overrides(ros_context):
 
 
 def test_a_wrongly_typed_override_names_the_parameter(ros_context):
-    from rclpy.exceptions import InvalidParameterTypeException
     from rclpy.node import Node
+
+    from w2e_ros.ros.params import ParameterError
 
     node = Node("params_test2", context=ros_context,
                 parameter_overrides=[Parameter("num_points", value="many")])
     try:
-        with pytest.raises(InvalidParameterTypeException, match="num_points"):
+        with pytest.raises(ParameterError, match="num_points"):
             declare_typed_parameters(node, _Settings)
     finally:
         node.destroy_node()

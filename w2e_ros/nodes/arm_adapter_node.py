@@ -44,7 +44,7 @@ from w2e_msgs.action import FollowWaypoints
 from w2e_ros.core import kinematics as kin
 from w2e_ros.ros.action_client import LockedActionClient
 from w2e_ros.ros.conversions import from_pose, to_pose
-from w2e_ros.ros.params import declare_typed_parameters, describe, param
+from w2e_ros.ros.params import ParameterError, declare_typed_parameters, describe, param
 from w2e_ros.ros.qos import LATCHED_QOS, RELIABLE_QOS
 from w2e_ros.ros.spin import run_node
 from w2e_ros.ros.waypoints import GRIPPER_CLOSE, GRIPPER_KEEP, GRIPPER_OPEN
@@ -100,9 +100,14 @@ class ArmAdapterNode(Node):
         super().__init__("arm_adapter", **node_kwargs)
         self.settings = s = declare_typed_parameters(self, ArmAdapterSettings)
         self.get_logger().info(f"settings: {describe(s)}")
-        self.base = kin.pose_matrix(s.base_pose or None)  # ValueError names a bad pose
+        try:
+            self.base = kin.pose_matrix(s.base_pose or None)
+        except ValueError as err:
+            raise ParameterError(self.get_fully_qualified_name(),
+                                 f"parameter 'base_pose': {err}") from None
         if len(s.workspace_min) != 3 or len(s.workspace_max) != 3:
-            raise ValueError("workspace_min / workspace_max are 3 numbers each")
+            raise ParameterError(self.get_fully_qualified_name(),
+                                 "parameters 'workspace_min' / 'workspace_max' are 3 numbers each")
         self.box = kin.WorkspaceBox(tuple(s.workspace_min), tuple(s.workspace_max))
         self.limits = kin.ArmLimits(velocity_scale=s.velocity_scale)
         self.plan_settings = kin.PlanSettings(cartesian_speed=s.cartesian_speed)

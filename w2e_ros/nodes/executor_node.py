@@ -54,7 +54,7 @@ from w2e_ros.ros.conversions import (
     to_pose,
     trial_result_to_outcome,
 )
-from w2e_ros.ros.params import declare_typed_parameters, describe, param
+from w2e_ros.ros.params import ParameterError, declare_typed_parameters, describe, param
 from w2e_ros.ros.pointcloud import cloud_to_arrays
 from w2e_ros.ros.qos import LATCHED_QOS
 from w2e_ros.ros.spin import run_node
@@ -112,8 +112,9 @@ class GripperExecutorNode(Node):
         self.get_logger().info(f"settings: {describe(self.settings)}")
         s = self.settings
         if s.outcome_source not in OUTCOME_SOURCES:
-            raise ValueError(f"outcome_source must be one of {OUTCOME_SOURCES}, got "
-                             f"{s.outcome_source!r}")
+            raise ParameterError(self.get_fully_qualified_name(),
+                                 f"parameter 'outcome_source' is {s.outcome_source!r}; expected "
+                                 f"one of {OUTCOME_SOURCES}")
         self.judge = replace(DEFAULT_JUDGE, min_motion=s.cloud_min_motion, radius=s.cloud_radius)
         self._busy = threading.Lock()  # one interaction at a time: there is one gripper
         self._objects: SegmentedObjects | None = None  # the latest segmented frame (clouds)

@@ -2,8 +2,11 @@
 
 Each node keeps its settings in one dataclass whose fields carry the type (annotation), the
 default and a description (``field(metadata={"description": ...})`` or :func:`param`). The
-parameters are declared once, with explicit types (a YAML ``5`` for a float parameter is an
-error that names the parameter, not a silent int), and read into a new instance of the class.
+parameters are declared once, with explicit types, and read into a new instance of the class.
+An integer given for a float parameter (YAML ``rate_hz: 5``, ``-p rate_hz:=5``, ``[1, 2]`` for
+a float list) is taken as the float it means; any other type, or a value out of range, raises
+:class:`ParameterError`, one line naming the parameter, the value and the type expected, which
+:func:`w2e_ros.ros.spin.run_node` reports without a traceback.
 
     @dataclass
     class BridgeSettings:
@@ -19,6 +22,7 @@ import typing
 from typing import Any, TypeVar
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
@@ -34,6 +38,34 @@ _TYPES: dict[Any, Parameter.Type] = {
     list[float]: Parameter.Type.DOUBLE_ARRAY,
     list[str]: Parameter.Type.STRING_ARRAY,
 }
+
+# what a user reads in an error: the Python / YAML words, not ROS's enum names
+_TYPE_WORDS: dict[Parameter.Type, str] = {
+    Parameter.Type.NOT_SET: "not set",
+    Parameter.Type.BOOL: "a bool",
+    Parameter.Type.INTEGER: "an integer",
+    Parameter.Type.DOUBLE: "a float",
+    Parameter.Type.STRING: "a string",
+    Parameter.Type.BYTE_ARRAY: "a byte array",
+    Parameter.Type.BOOL_ARRAY: "a list of bools",
+    Parameter.Type.INTEGER_ARRAY: "a list of integers",
+    Parameter.Type.DOUBLE_ARRAY: "a list of floats",
+    Parameter.Type.STRING_ARRAY: "a list of strings",
+}
+# an override of the key type is taken for a parameter of the value type, converted
+_WIDENED = {
+    (Parameter.Type.INTEGER, Parameter.Type.DOUBLE): float,
+    (Parameter.Type.INTEGER_ARRAY, Parameter.Type.DOUBLE_ARRAY): lambda v: [float(x) for x in v],
+}
+
+
+class ParameterError(ValueError):
+    """A parameter override a node cannot start with; the message is the one line to show."""
+
+    def __init__(self, node: str, message: str) -> None:
+        super().__init__(f"{node}: {message}")
+        self.node = node  # fully qualified name, e.g. /robot1/segmentation
+        self.message = message
 
 
 def param(default: Any, description: str, *, read_only: bool = False,
@@ -69,9 +101,8 @@ def declare_typed_parameters(node: Node, settings_cls: type[T], prefix: str = ""
     """Declare one parameter per field of the dataclass ``settings_cls`` and return an instance
     holding the values in effect (the parameter overrides, e.g. from the YAML, or defaults).
 
-    Raises TypeError for a field type ROS parameters cannot hold, and rclpy's
-    ``InvalidParameterTypeException`` / ``InvalidParameterValueException`` (which name the
-    parameter) for an override of the wrong type or out of range.
+    Raises TypeError for a field type ROS parameters cannot hold (a programming error) and
+    :class:`ParameterError` for an override of the wrong type or out of range (a user's).
     """
     if not dataclasses.is_dataclass(settings_cls):
         raise TypeError(f"{settings_cls!r} is not a dataclass")
@@ -93,12 +124,60 @@ def declare_typed_parameters(node: Node, settings_cls: type[T], prefix: str = ""
         initial = ptype if isinstance(default, list) and not default else default
         if isinstance(default, float) and ptype == Parameter.Type.DOUBLE:
             initial = float(default)
-        p = node.declare_parameter(name, initial, desc)
+        p = _declare(node, name, initial, desc, ptype)
         values[f.name] = default if p.type_ == Parameter.Type.NOT_SET else p.value
         if ptype in (Parameter.Type.BOOL_ARRAY, Parameter.Type.INTEGER_ARRAY,
                      Parameter.Type.DOUBLE_ARRAY, Parameter.Type.STRING_ARRAY):
             values[f.name] = list(values[f.name])
     return settings_cls(**values)
+
+
+def _declare(node: Node, name: str, initial: Any, desc: ParameterDescriptor,
+             ptype: Parameter.Type) -> Parameter:
+    """``node.declare_parameter`` that widens an integer override for a float parameter and
+    turns a refused override into a :class:`ParameterError`.
+
+    rclpy refuses an integer for a DOUBLE parameter and its exception does not carry the value
+    as data, so the override is read back by declaring the name once without a type
+    (``dynamic_typing``), undeclared, and declared again, typed, with the converted value in
+    place of the override (``ignore_override``): public API only, the declared type stays
+    DOUBLE.
+    """
+    try:
+        return node.declare_parameter(name, initial, desc)
+    except (InvalidParameterTypeException, InvalidParameterValueException) as err:
+        refused = err
+    probe = node.declare_parameter(name, None, ParameterDescriptor(dynamic_typing=True))
+    given, gtype = probe.value, probe.type_
+    node.undeclare_parameter(name)
+    if gtype == Parameter.Type.NOT_SET:  # no override: the default itself was refused
+        raise refused
+    who = node.get_fully_qualified_name()
+    if gtype != ptype:
+        convert = _WIDENED.get((gtype, ptype))
+        if convert is None:
+            raise ParameterError(who, f"parameter {name!r} is {given!r} "
+                                      f"({_TYPE_WORDS[gtype]}); expected {_TYPE_WORDS[ptype]}")
+        given = convert(given)
+        try:
+            return node.declare_parameter(name, given, desc, ignore_override=True)
+        except InvalidParameterValueException:
+            pass
+    raise ParameterError(who, f"parameter {name!r} is {given!r}; expected {_range_words(desc)}")
+
+
+def _range_words(desc: ParameterDescriptor) -> str:
+    """The range a descriptor allows, in words (the open ends :func:`_descriptor` fills in
+    left out)."""
+    for r, huge in ((desc.floating_point_range, 1e300), (desc.integer_range, 2**62)):
+        if r:
+            lo, hi = r[0].from_value, r[0].to_value
+            if lo <= -huge:
+                return f"a value <= {hi}"
+            if hi >= huge:
+                return f"a value >= {lo}"
+            return f"a value in [{lo}, {hi}]"
+    return "a valid value"
 
 
 def describe(settings: Any) -> str:

@@ -10,6 +10,8 @@ from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, Si
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
+from w2e_ros.ros.params import ParameterError
+
 SPIN_PERIOD = 0.1  # s: the main thread gets back to Python this often, so signals land
 DRAIN_TIMEOUT = 2.0  # s: longest a callback in flight may still run once shutdown is asked
 
@@ -30,10 +32,14 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None = None,
     is invalid") and is printed as an exception nobody retrieved. Here a signal stops the spin
     loop, callbacks in flight get ``DRAIN_TIMEOUT`` to finish with a live context, and only
     then the node and the context go.
+
+    A parameter the node cannot start with (:class:`ParameterError`) is logged as one line
+    under the node's name, without a traceback, and the process exits with status 2.
     """
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     previous = signal.signal(signal.SIGTERM, _interrupt)
     node = executor = None
+    refused = False
     try:
         node = make_node()
         executor = MultiThreadedExecutor(num_threads=threads) if threads > 1 else (
@@ -43,6 +49,10 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None = None,
             executor.spin_once(timeout_sec=SPIN_PERIOD)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except ParameterError as err:
+        refused = True
+        logger = err.node.strip("/").replace("/", ".") or "w2e"
+        rclpy.logging.get_logger(logger).fatal(err.message)
     finally:
         signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a second signal must not cut teardown
         signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -58,3 +68,5 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None = None,
         rclpy.try_shutdown()
         signal.signal(signal.SIGTERM, previous)
         signal.signal(signal.SIGINT, signal.default_int_handler)
+    if refused:
+        raise SystemExit(2)
