@@ -9,9 +9,9 @@ STAMP := $(VENV)/.stamps
 NODE_EXES := w2e sim_bridge_node segmentation_node inference_node planner_node executor_node arm_adapter_node
 export GLIBC_TUNABLES ?= glibc.malloc.hugetlb=1
 
-.PHONY: install system-deps venv python-deps interfaces package demo test test-fast lint bench clean-ros
+.PHONY: install system-deps venv python-deps interfaces package activate demo test test-fast lint bench clean-ros
 
-install: package interfaces
+install: package interfaces activate
 
 # --- system packages (Debian/Ubuntu); skipped when already present -----------------------
 $(STAMP)/system:
@@ -54,6 +54,13 @@ $(STAMP)/package: setup.py package.xml $(STAMP)/python
 	@for exe in $(NODE_EXES); do ln -sfn $(abspath $(VENV))/bin/$$exe $(VENV)/lib/w2e_ros/$$exe; done
 	@touch $@
 package: $(STAMP)/package
+
+# --- `source .venv/bin/activate` sets AMENT_PREFIX_PATH & co. (deactivate restores them) ---
+$(STAMP)/activate: scripts/venv_ros_env.sh | $(PY)
+	@mkdir -p $(STAMP)
+	bash scripts/venv_ros_env.sh $(VENV)
+	@touch $@
+activate: $(STAMP)/activate
 
 demo: install
 	$(VENV)/bin/w2e demo
