@@ -15,7 +15,14 @@ from pathlib import Path
 
 import numpy as np
 
-from sim_bridge.camera import CameraSettings, PosedMesh, make_camera, random_view, view_pose
+from sim_bridge.camera import (
+    CameraSettings,
+    PosedMesh,
+    make_camera,
+    open3d_available,
+    random_view,
+    view_pose,
+)
 from sim_bridge.geometry import make_pose, sapien_to_pose, transform_points
 from sim_bridge.objects.model import ObjectModel
 from sim_bridge.types import Observation
@@ -40,6 +47,49 @@ class SimSettings:
     settle_steps: int = 20  # hold at the end before measuring
     touch_impulse: float = 1e-6  # a contact counts as touching above this impulse (N s)
     camera: CameraSettings = field(default_factory=CameraSettings)
+
+
+def nearest_mesh_open3d(meshes: list[PosedMesh], point: np.ndarray) -> tuple[int, np.ndarray]:
+    """(index into ``meshes``, nearest surface point) by Open3D's ``RaycastingScene``."""
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    for m in meshes:
+        scene.add_triangles(
+            o3d.core.Tensor(m.vertices.astype(np.float32)),
+            o3d.core.Tensor(m.triangles.astype(np.uint32)),
+        )
+    q = o3d.core.Tensor(np.asarray(point, np.float32).reshape(1, 3))
+    res = scene.compute_closest_points(q)
+    return int(res["geometry_ids"].numpy()[0]), res["points"].numpy()[0].astype(np.float64)
+
+
+TIE_M = 1e-6  # surfaces of two meshes this close at the nearest point: a tie (see below)
+
+
+def nearest_mesh_torch(meshes: list[PosedMesh], point: np.ndarray) -> tuple[int, np.ndarray]:
+    """The same as :func:`nearest_mesh_open3d` without Open3D: every triangle's closest point
+    in float64 on the CPU (a few thousand triangles, one point: about a millisecond).
+
+    Where two meshes' surfaces meet at the nearest point (a closed lid on its rim, within
+    ``TIE_M``), the answer is a tie that float rounding decides; it goes to the later mesh,
+    as Open3D's float32 search gave in every such case measured (``test_torch_raycast.py``).
+    """
+    import torch
+
+    from sim_bridge.torch_raycast import closest_points
+
+    owner = np.repeat(np.arange(len(meshes)), [len(m.triangles) for m in meshes])
+    corners = np.concatenate([np.asarray(m.vertices, np.float64)[np.asarray(m.triangles)]
+                              for m in meshes]).reshape(-1, 3, 3)
+    p = np.asarray(point, np.float64).reshape(1, 3)
+    near = closest_points(torch.from_numpy(p), torch.from_numpy(corners))[0].numpy()  # (T, 3)
+    dist = np.linalg.norm(near - p, axis=1)
+    dist[~np.isfinite(dist)] = np.inf  # degenerate triangles
+    tied = np.flatnonzero(dist <= dist.min() + TIE_M)
+    later = tied[owner[tied] == owner[tied].max()]
+    best = later[np.argmin(dist[later])]
+    return int(owner[best]), near[best]
 
 
 class ObjectWorld:
@@ -137,20 +187,12 @@ class ObjectWorld:
         return (allp.min(0) + allp.max(0)) / 2
 
     def locate(self, qpos: np.ndarray, point) -> tuple[int, int, float]:
-        """(object id, link id, distance) of the link surface nearest to ``point``."""
-        import open3d as o3d
-
-        scene = o3d.t.geometry.RaycastingScene()
+        """(object id, link id, distance) of the link surface nearest to ``point``: Open3D's
+        closest-point query, or the same in torch where Open3D cannot be imported."""
         meshes = self.posed_meshes(qpos)
-        for m in meshes:
-            scene.add_triangles(
-                o3d.core.Tensor(m.vertices.astype(np.float32)),
-                o3d.core.Tensor(m.triangles.astype(np.uint32)),
-            )
-        q = o3d.core.Tensor(np.asarray(point, np.float32).reshape(1, 3))
-        res = scene.compute_closest_points(q)
-        g = int(res["geometry_ids"].numpy()[0])
-        dist = float(np.linalg.norm(res["points"].numpy()[0] - np.asarray(point)))
+        find = nearest_mesh_open3d if open3d_available() else nearest_mesh_torch
+        g, nearest = find(meshes, np.asarray(point, float))
+        dist = float(np.linalg.norm(nearest - np.asarray(point, float)))
         return meshes[g].object_id, meshes[g].link_id, dist
 
     # -- camera ----------------------------------------------------------------------------
