@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
-import fpsample
 import numpy as np
+
+from w2e_ros.core.fps import load_fpsample
 
 
 def fps_indices(points: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
-    """Indices of ``n`` furthest-point samples of (P, 3) points (bucket FPS, ms not 100 ms).
+    """Indices of ``n`` furthest-point samples of (P, 3) points (bucket FPS, ms not 100 ms;
+    the torch loop where ``fpsample`` cannot be imported: other samples for the same seed,
+    as their first points differ, see :mod:`w2e_ros.core.fps`).
 
     Clouds with fewer than ``n`` points are padded by repeating points, so every stored cloud
     has exactly ``n`` rows; deterministic for a given seed.
@@ -21,6 +24,13 @@ def fps_indices(points: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
         extra = rng.integers(0, p, size=n - p)
         return np.concatenate([np.arange(p), extra]).astype(np.int64)
     start = int(np.random.default_rng(seed).integers(0, p))
+    fpsample = load_fpsample()
+    if fpsample is None:
+        import torch
+
+        from w2e_ros.core.fps import farthest_point_sample_torch
+
+        return farthest_point_sample_torch(torch.from_numpy(points)[None], n, start)[0].numpy()
     height = 7 if p > 4096 else 5
     idx = fpsample.bucket_fps_kdline_sampling(points, n, h=height, start_idx=start)
     return np.asarray(idx, dtype=np.int64)

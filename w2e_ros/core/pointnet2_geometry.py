@@ -1,7 +1,8 @@
 """PointNet++ geometry as plain functions: sampling, grouping, interpolation.
 
 Chosen for a 2-core CPU (DESIGN §6): furthest point sampling runs as bucket FPS in the
-``fpsample`` package (ms instead of a 100 ms torch loop), squared distances are one matrix
+``fpsample`` package on the CPU (ms instead of a 100 ms torch loop; the torch loop of
+:mod:`w2e_ros.core.fps` on CUDA or without ``fpsample``), squared distances are one matrix
 product, and the ball query keeps the ``nsample`` NEAREST points inside the radius (a top-k
 instead of a full sort; the reference keeps the first ``nsample`` by index, a random subset of
 the ball). Nothing here has parameters or gradients of its own except through the gathered
@@ -10,9 +11,10 @@ coordinates.
 
 from __future__ import annotations
 
-import fpsample
 import numpy as np
 import torch
+
+from w2e_ros.core.fps import farthest_point_sample_torch, load_fpsample
 
 
 def square_distance(src: torch.Tensor, dst: torch.Tensor) -> torch.Tensor:
@@ -35,10 +37,15 @@ def _fps_height(n: int) -> int:
 
 
 def farthest_point_sample(xyz: torch.Tensor, npoint: int) -> torch.Tensor:
-    """(B, N, 3) -> (B, npoint) long indices, bucket FPS from point 0 (deterministic)."""
+    """(B, N, 3) -> (B, npoint) long indices, deterministic: bucket FPS (``fpsample``) for CPU
+    tensors, the torch loop from point 0 for CUDA tensors or without ``fpsample``. The two
+    start at different points (see :mod:`w2e_ros.core.fps`), so their centroids differ."""
     B, N, _ = xyz.shape
     if npoint >= N:
         return torch.arange(N, device=xyz.device).repeat(B, 1)[:, :npoint]
+    fpsample = load_fpsample()
+    if xyz.is_cuda or fpsample is None:
+        return farthest_point_sample_torch(xyz, npoint)
     pts = xyz.detach().to("cpu", torch.float32).numpy()
     h = _fps_height(N)
     out = np.stack([
