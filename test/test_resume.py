@@ -193,7 +193,8 @@ def stack(tmp_path_factory):
         torch.manual_seed(i)
         ckpt[prim] = save_model(tmp / f"{prim}.pt", W2EModel(), {"method": "w2e",
                                                                  "combo": "cfw"})
-    env = ros_env(domain_id=pick_domain_id(41), log_dir=tmp / "ros_log")
+    domain = pick_domain_id(41)
+    env = ros_env(domain_id=domain, log_dir=tmp / "ros_log")
     out = Tee()
     log_dir = tmp / "exploration"
     extra = {
@@ -207,7 +208,7 @@ def stack(tmp_path_factory):
     }
     with Stack(env=env, output=out, ready_timeout=150.0, extra_args=extra, respawn=True,
                respawn_delay=0.5) as s:
-        yield s, env, log_dir, out
+        yield s, env, log_dir / f"domain{domain}", out  # the stack's state scope
 
 
 def test_explore_action_feedback_busy_goal_rejected_and_cancel_between_interactions(stack):

@@ -1,7 +1,8 @@
 """Exploration sessions on disk: every executed interaction is appended to a log before it is
 learned from, so an interrupted exploration resumes where it stopped and a crash loses none.
 
-Layout under a root directory (the planner node's ``exploration_log_dir``)::
+Layout under a root directory (the planner node's ``exploration_log_dir``/``<state scope>``,
+see ``w2e_ros.ros.state``)::
 
     <root>/<session>/<category>_<primitive>/run-0001/
         events.jsonl          one JSON object per line: "run" (a call started or resumed the
@@ -101,8 +102,8 @@ class SessionRun:
     def __init__(self, path: Path, session: str, category: str, primitive: str) -> None:
         self.path = Path(path)
         self.session, self.category, self.primitive = session, category, primitive
-        self.path.mkdir(parents=True, exist_ok=True)
-        (self.path / "clouds").mkdir(exist_ok=True)
+        # created by the first write, not here: a request refused before its run starts must
+        # leave no empty run directory behind
         self.events: list[dict[str, Any]] = self._read()
 
     # --- reading --------------------------------------------------------------------------
@@ -164,9 +165,13 @@ class SessionRun:
         return f"w2e_session_{self.session}_{self.category}_{self.primitive}_{self.name}.pt"
 
     # --- writing ----------------------------------------------------------------------------
+    def _make_dirs(self) -> None:
+        (self.path / "clouds").mkdir(parents=True, exist_ok=True)
+
     def _append(self, event: dict[str, Any]) -> None:
         event = {"event": event.pop("event"), "time": round(time.time(), 3), **event}
         line = json.dumps(event, separators=(",", ":")) + "\n"
+        self._make_dirs()
         with open(self.path / EVENTS, "a") as f:
             f.write(line)
             f.flush()
@@ -186,6 +191,7 @@ class SessionRun:
         index = self.count + 1
         rel = f"clouds/{index:06d}.npz"
         tmp = self.path / f"{rel}.tmp"
+        self._make_dirs()
         with open(tmp, "wb") as f:
             np.savez(f, points=np.asarray(points, np.float32),
                      normals=np.asarray(normals, np.float32))
@@ -221,7 +227,7 @@ def session_dir(root: str | os.PathLike, session: str, category: str, primitive:
 def open_session(root: str | os.PathLike, session: str, category: str, primitive: str,
                  resume: bool = True) -> SessionRun:
     """The run an explore call works on: the session's latest run while it is not complete
-    (and ``resume``), else a new one."""
+    (and ``resume``), else a new one (its directory is made by its first write)."""
     base = session_dir(root, session, category, primitive)
     runs = sorted(p for p in base.glob("run-[0-9][0-9][0-9][0-9]") if p.is_dir()) \
         if base.exists() else []

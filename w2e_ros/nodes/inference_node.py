@@ -57,6 +57,7 @@ from w2e_ros.ros.pointcloud import (
 )
 from w2e_ros.ros.qos import LATCHED_QOS
 from w2e_ros.ros.spin import run_node
+from w2e_ros.ros.state import scoped_dir, state_scope
 
 if TYPE_CHECKING:
     from w2e_ros.core.data import InteractionData
@@ -73,7 +74,9 @@ class InferenceSettings:
     pull_checkpoint: str = param("", "pull model checkpoint ('': shipped checkpoints/"
                                      "w2e_cfw_pull.pt)")
     adapted_dir: str = param("~/.ros/w2e_adapted", "directory the fine-tuned checkpoints are "
-                             "written to (w2e_adapted_<primitive>.pt)")
+                             "written to (<state_scope>/w2e_adapted_<primitive>.pt)")
+    state_scope: str = param("", "subdirectory of adapted_dir holding this stack's checkpoints "
+                             "('': domain<ROS_DOMAIN_ID> and the namespace, e.g. domain0.lab)")
     load_adapted: bool = param(False, "start from the adapted checkpoint in adapted_dir when "
                                "one exists (resume after a restart)")
     replay_data: str = param(
@@ -156,6 +159,7 @@ class InferenceNode(Node):
         super().__init__("inference_node", **kwargs)
         self.settings = declare_typed_parameters(self, InferenceSettings)
         s = self.settings
+        self.adapted_dir = scoped_dir(s.adapted_dir, state_scope(self, s.state_scope))
         torch.set_num_threads(s.threads)
         self.device = default_device()
         self.rng = np.random.default_rng(s.seed)
@@ -169,7 +173,8 @@ class InferenceNode(Node):
         self.create_service(UpdateModel, "update_model", self.on_update_model)
         self.create_service(Trigger, "reset_model", self.on_reset)
         self.get_logger().info(
-            f"serving {sorted(self.served) or 'no model'} on {self.device}; {describe(s)}")
+            f"serving {sorted(self.served) or 'no model'} on {self.device}; checkpoints in "
+            f"{self.adapted_dir}; {describe(s)}")
 
     # --- models -----------------------------------------------------------------------------
     def _checkpoint(self, primitive: str) -> Path:
@@ -187,7 +192,7 @@ class InferenceNode(Node):
         return Path(s.replay_data).expanduser() if s.replay_data else None
 
     def adapted_path(self, primitive: str) -> Path:
-        return Path(self.settings.adapted_dir).expanduser() / f"w2e_adapted_{primitive}.pt"
+        return self.adapted_dir / f"w2e_adapted_{primitive}.pt"
 
     def _load_all(self) -> None:
         for prim in BASE_PRIMITIVES:

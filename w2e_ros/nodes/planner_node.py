@@ -73,6 +73,7 @@ from w2e_ros.ros.params import declare_typed_parameters, describe, param
 from w2e_ros.ros.pointcloud import arrays_to_cloud, cloud_to_arrays, movable_mask
 from w2e_ros.ros.qos import LATCHED_QOS, RELIABLE_QOS
 from w2e_ros.ros.spin import run_node
+from w2e_ros.ros.state import scoped_dir, state_scope
 
 
 @dataclass
@@ -125,7 +126,11 @@ class PlannerSettings:
     seed: int = param(0, "seed of the candidate sampling and of the scene start states")
     exploration_log_dir: str = param("", "directory of the exploration sessions' logs (every "
                                      "executed interaction; '': $XDG_DATA_HOME/w2e/exploration,"
-                                     " ~/.local/share/w2e/exploration)")
+                                     " ~/.local/share/w2e/exploration); this stack's are in "
+                                     "its state_scope subdirectory")
+    state_scope: str = param("", "subdirectory of exploration_log_dir holding this stack's "
+                             "sessions, so stacks never resume each other's runs ('': "
+                             "domain<ROS_DOMAIN_ID> and the namespace, e.g. domain0.lab)")
     resume: bool = param(True, "an explore call for a session whose last run did not finish "
                          "continues that run (false: every call starts a new run)")
 
@@ -336,8 +341,9 @@ class PlannerNode(Node):
         s = self.settings
         self.arm = Arm(s.arm, tuple(s.arm_base_pose), tuple(s.arm_workspace_min),
                        tuple(s.arm_workspace_max))  # ValueError names a wrong value
-        self.log_dir = (Path(self.settings.exploration_log_dir).expanduser()
-                        if self.settings.exploration_log_dir else default_log_dir())
+        self.scope = state_scope(self, s.state_scope)
+        self.log_dir = scoped_dir(s.exploration_log_dir or default_log_dir(), self.scope)
+        self.get_logger().info(f"exploration sessions in {self.log_dir}")
         self.busy = threading.Lock()
         self.objects_cv = threading.Condition()
         self.latest_objects: SegmentedObjects | None = None
