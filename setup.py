@@ -12,7 +12,7 @@ NODES = {
     "inference_node": "w2e_ros.nodes.inference_node:main",
     "planner_node": "w2e_ros.nodes.planner_node:main",
     "executor_node": "w2e_ros.nodes.executor_node:main",
-    "arm_adapter_node": "w2e_ros.nodes.arm_adapter_node:main",  # a real arm, not in bringup
+    "arm_adapter_node": "w2e_ros.nodes.arm_adapter_node:main",  # a real arm / the simulated Panda
 }
 
 setup(

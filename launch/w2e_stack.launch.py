@@ -6,7 +6,9 @@ The same nodes, names and parameter file as ``w2e bringup`` (which is what runs 
     namespace:=<ns>          namespace of every node (default: none)
     params_file:=<yaml>      default: share/w2e_ros/config/w2e_stack.yaml
     use_sim:=true|false      start the sim bridge (false: real camera + robot adapters)
-    nodes:=a,b,c             subset of sim_bridge,segmentation,inference,executor,planner
+    nodes:=a,b,c             subset of sim_bridge,arm_adapter,segmentation,inference,executor,
+                             planner (default: all but arm_adapter, which starts by default
+                             when the sim bridge's robot is panda, live on its arm_base_pose)
     respawn:=true|false      start a node again when it dies (as w2e bringup --respawn;
                              launch_ros waits respawn_delay:=<s> each time, with no limit)
 
@@ -27,6 +29,7 @@ from launch import LaunchDescription
 # short name -> (console script in setup.py, ROS node name = section of the YAML), start order
 NODES = {
     "sim_bridge": ("sim_bridge_node", "sim_bridge"),
+    "arm_adapter": ("arm_adapter_node", "arm_adapter"),
     "segmentation": ("segmentation_node", "segmentation"),
     "inference": ("inference_node", "inference_node"),
     "executor": ("executor_node", "executor"),
@@ -48,14 +51,24 @@ def _nodes(context, *args, **kwargs):
     with open(params_file) as f:
         params = yaml.safe_load(f) or {}
     shared = params.get("/**", {}).get("ros__parameters", {})
+    bridge = dict(shared, **params.get("sim_bridge", {}).get("ros__parameters", {}))
+    sim_panda = use_sim and bridge.get("robot", "flying") == "panda"
+    if sim_panda and not bridge.get("arm_base_pose"):
+        raise RuntimeError("sim_bridge robot: panda needs sim_bridge arm_base_pose (the arm "
+                           "adapter plans from the base the simulated arm stands on)")
     actions = []
     for name, (executable, node_name) in NODES.items():
         if wanted and name not in wanted:
             continue
         if name == "sim_bridge" and not use_sim:
             continue
+        if name == "arm_adapter" and not wanted and not sim_panda:
+            continue
         section = dict(shared)
         section.update(params.get(node_name, {}).get("ros__parameters", {}))
+        if name == "arm_adapter" and sim_panda:  # live on the simulated arm (as w2e bringup)
+            section.update(dry_run=False, gripper_action="", base_pose=bridge["arm_base_pose"],
+                           gripper_topic="panda_hand_controller/joint_trajectory")
         actions.append(Node(
             package="w2e_ros",
             executable=executable,

@@ -171,3 +171,77 @@ def _running(pid: int) -> bool:
             return f.read().split(") ")[-1][0] != "Z"  # a zombie has exited
     except FileNotFoundError:
         return False
+
+
+def _panda_params(tmp_path: Path, base: list[float] | None, outcome: str = "clouds") -> Path:
+    """config/w2e_stack.yaml with the bridge's simulated Panda switched on."""
+    import yaml
+
+    from w2e_ros.bringup import default_params
+
+    data = yaml.safe_load(default_params().read_text())
+    data["sim_bridge"]["ros__parameters"].update(robot="panda", arm_base_pose=base or [])
+    data["executor"]["ros__parameters"]["outcome_source"] = outcome
+    path = tmp_path / "panda.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+PANDA_BASE = [0.95, 0.0, 0.1, 0.0, 0.0, 1.0, 0.0]
+
+
+def test_robot_panda_brings_up_the_arm_adapter_live_on_the_bridges_base(tmp_path):
+    from w2e_ros.bringup import Stack
+
+    flying = Stack(output=None)
+    assert "arm_adapter" not in [s.name for s in flying.specs]
+    assert "follow_waypoints" in flying.specs[0].actions
+    stack = Stack(params=_panda_params(tmp_path, PANDA_BASE), output=None)
+    assert [s.name for s in stack.specs] == ["sim_bridge", "arm_adapter", "segmentation",
+                                             "inference", "executor", "planner"]
+    bridge, adapter = stack.specs[:2]
+    # the bridge is up when it serves the Panda's side; follow_waypoints is the adapter's
+    assert bridge.actions == () and "joint_states" in bridge.publishers
+    assert adapter.actions == ("follow_waypoints",)
+    cmd = " ".join(stack.command(adapter, stack.params))
+    assert "dry_run:=false" in cmd and "gripper_topic:=panda_hand_controller/joint_trajectory" \
+        in cmd and "base_pose:=[0.95, 0.0, 0.1, 0.0, 0.0, 1.0, 0.0]" in cmd
+
+
+def test_robot_panda_without_what_it_needs_fails_at_once_naming_it(tmp_path):
+    """The bring-up that hung 120 s ("nodes ['sim_bridge'] were not up") now says at once what
+    the configuration lacks, as a user running ``w2e bringup`` sees it."""
+    t0 = time.monotonic()
+    res = subprocess.run([W2E, "bringup", "--params", str(_panda_params(tmp_path, None, "joints")),
+                          "--domain-id", str(pick_domain_id(71))], env=ros_env(),
+                         capture_output=True, text=True, timeout=60)
+    assert res.returncode == 1, res.stdout + res.stderr
+    assert time.monotonic() - t0 < 30
+    assert "Traceback" not in res.stderr
+    assert "sim_bridge robot: panda needs sim_bridge arm_base_pose" in res.stderr, res.stderr
+    assert "executor outcome_source: clouds" in res.stderr, res.stderr
+    assert "is up" not in res.stdout  # nothing was started
+
+
+def test_w2e_bringup_with_robot_panda_comes_up_without_a_separate_adapter(tmp_path):
+    proc = subprocess.Popen(
+        [W2E, "bringup", "--params", str(_panda_params(tmp_path, PANDA_BASE)), "--nodes",
+         "sim_bridge", "arm_adapter", "executor", "--domain-id", str(pick_domain_id(73)),
+         "--log-dir", str(tmp_path / "log"), "--timeout", "150"],
+        env=ros_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
+    lines: list[str] = []
+    try:
+        deadline = time.monotonic() + 180
+        while time.monotonic() < deadline:
+            line = proc.stdout.readline()
+            if not line:
+                break
+            lines.append(line.rstrip("\n"))
+            if "stack is up" in line:
+                break
+        assert any("stack is up" in x for x in lines), "\n".join(lines[-40:])
+        assert any("node arm_adapter is up" in x for x in lines)
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(30) == 0
+    finally:
+        stop_process(proc, group=False)

@@ -32,7 +32,7 @@ import sys
 import tempfile
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TextIO
 
@@ -60,6 +60,10 @@ NODES: dict[str, NodeSpec] = {
         NodeSpec("sim_bridge", "sim_bridge", "sim_bridge.bridge_node",
                  services=("load_scene",), actions=("follow_waypoints",),
                  publishers=("camera/points",)),
+        # the robot side in place of the bridge's follow_waypoints: a real arm, or the bridge's
+        # simulated Panda (started by default only then, see Stack)
+        NodeSpec("arm_adapter", "arm_adapter", "w2e_ros.nodes.arm_adapter_node",
+                 actions=("follow_waypoints",)),
         NodeSpec("segmentation", "segmentation", "w2e_ros.nodes.segmentation_node",
                  publishers=("objects",)),
         NodeSpec("inference", "inference_node", "w2e_ros.nodes.inference_node",
@@ -71,6 +75,33 @@ NODES: dict[str, NodeSpec] = {
     )
 }
 """Every node of the stack, in start order (the planner needs all the others)."""
+
+# sim_bridge with ``robot: panda`` serves what a Panda's ros2_control setup serves instead of
+# follow_waypoints (which the arm adapter then serves against it)
+SIM_PANDA_BRIDGE = replace(NODES["sim_bridge"], actions=(),
+                           publishers=("camera/points", "joint_states"))
+# the arm adapter live against the simulated Panda: its hand is a finger JointTrajectory
+SIM_PANDA_ADAPTER_ARGS = ["-p", "dry_run:=false", "-p", "gripper_action:=''",
+                          "-p", "gripper_topic:=panda_hand_controller/joint_trajectory"]
+
+
+def node_parameters(params: Path, node: str, namespace: str = "",
+                    args: list[str] | None = None) -> dict:
+    """The parameters ``node`` gets from the file (``/**``, its plain and its namespaced
+    section, in rcl's order) and from ``-p name:=value`` in ``args`` (which win)."""
+    data = yaml.safe_load(Path(params).read_text()) or {}
+    ns = namespace.strip("/")
+    out: dict = {}
+    for key in ("/**", node, f"/{node}", f"/{ns}/{node}" if ns else None):
+        section = data.get(key) if key else None
+        if isinstance(section, dict):
+            out.update(section.get("ros__parameters") or {})
+    rest = list(args or [])
+    for flag, value in zip(rest, rest[1:], strict=False):
+        if flag == "-p" and ":=" in value:
+            name, raw = value.split(":=", 1)
+            out[name] = yaml.safe_load(raw)
+    return out
 
 
 RESPAWN_MAX_DELAY = 10.0  # s: the longest wait before a respawn
@@ -166,11 +197,6 @@ class Stack:
         respawn_limit: int = 5,
         respawn_delay: float = 1.0,
     ):
-        names = list(nodes) if nodes else list(NODES)
-        unknown = [n for n in names if n not in NODES]
-        if unknown:
-            raise ValueError(f"unknown nodes {unknown}; the stack has {list(NODES)}")
-        self.specs = [NODES[n] for n in NODES if n in names]  # start order
         self.params = Path(params) if params else default_params()
         if not self.params.exists():
             raise FileNotFoundError(f"parameter file {self.params} does not exist")
@@ -178,7 +204,19 @@ class Stack:
         self.env = ros_env(base=env, localhost_only=False)
         self.output = output
         self.ready_timeout = ready_timeout
-        self.extra_args = extra_args or {}
+        self.extra_args = {k: list(v) for k, v in (extra_args or {}).items()}
+        names = list(nodes) if nodes else [n for n in NODES if n != "arm_adapter"]
+        unknown = [n for n in names if n not in NODES]
+        if unknown:
+            raise ValueError(f"unknown nodes {unknown}; the stack has {list(NODES)}")
+        self.notes: list[str] = []  # said when the stack starts
+        if "sim_bridge" in names and self._sim_robot() == "panda":
+            if not nodes:  # the configuration's default: what robot panda needs
+                names.append("arm_adapter")
+            self._check_sim_panda(names)
+        specs = [NODES[n] for n in NODES if n in names]  # start order
+        self.specs = [SIM_PANDA_BRIDGE if sp.name == "sim_bridge" and self._sim_robot() ==
+                      "panda" else sp for sp in specs]
         self.respawn, self.respawn_limit = respawn, int(respawn_limit)
         self.respawn_delay = float(respawn_delay)
         self.respawns: dict[str, int] = {}  # node -> restarts so far
@@ -190,6 +228,46 @@ class Stack:
         self._params_file: Path | None = None
         self._tmp: tempfile.TemporaryDirectory | None = None
         self._shm_before: set[Path] = set()
+
+    # -- what the configuration needs ----------------------------------------------------------
+    def _params_of(self, node: str) -> dict:
+        spec = NODES[node]
+        return node_parameters(self.params, spec.node, self.namespace,
+                               self.extra_args.get(node))
+
+    def _sim_robot(self) -> str:
+        return str(self._params_of("sim_bridge").get("robot", "flying"))
+
+    def _check_sim_panda(self, names: list[str]) -> None:
+        """sim_bridge ``robot: panda``: the arm adapter, live against the simulated arm from the
+        bridge's base pose, serves follow_waypoints; settings that cannot work with it fail
+        here, before anything starts, all named at once (a bring-up that waited for a
+        follow_waypoints nobody serves hung for its whole timeout)."""
+        bridge = self._params_of("sim_bridge")
+        missing = []
+        base = list(bridge.get("arm_base_pose") or [])
+        if "arm_adapter" in names and not base:
+            missing.append("sim_bridge arm_base_pose: the arm adapter plans from the same base "
+                           "pose as the simulated arm stands on ([] lets the bridge choose one "
+                           "at the first load, which the adapter cannot know)")
+        if "executor" in names and self._params_of("executor").get(
+                "outcome_source", "joints") != "clouds":
+            missing.append("executor outcome_source: clouds (the arm adapter reports no object "
+                           "joints, so every trial would be refused)")
+        if missing:
+            raise StackError("sim_bridge robot: panda needs " + "; ".join(missing))
+        if "arm_adapter" in names:
+            pose = "[" + ", ".join(repr(float(v)) for v in base) + "]"
+            self.extra_args["arm_adapter"] = [*SIM_PANDA_ADAPTER_ARGS, "-p", f"base_pose:={pose}",
+                                              *self.extra_args.get("arm_adapter", [])]
+        elif "executor" in names:
+            self.notes.append("sim_bridge robot: panda serves no follow_waypoints: the executor "
+                              "needs the arm adapter (add arm_adapter to --nodes, or run it)")
+        planner = self._params_of("planner") if "planner" in names else {}
+        if planner and planner.get("arm", "flying") != "panda":
+            self.notes.append("sim_bridge robot: panda with planner_node arm: flying: the "
+                              "planner does not check the arm's reach (set arm: panda and its "
+                              "arm_base_pose)")
 
     # -- life cycle ---------------------------------------------------------------------------
     def command(self, spec: NodeSpec, params: Path) -> list[str]:
@@ -205,6 +283,8 @@ class Stack:
         self._tmp = tempfile.TemporaryDirectory(prefix="w2e_bringup_")
         self._params_file = namespaced_params(self.params, self.namespace, Path(self._tmp.name))
         self._stopping.clear()
+        for note in self.notes:
+            self._say(note)
         try:
             for spec in self.specs:
                 self.procs.append(self._spawn(spec))
@@ -399,9 +479,13 @@ def run(a: argparse.Namespace) -> int:
     # started in the background of a script, a process inherits SIGINT ignored (POSIX): Ctrl-C /
     # kill -INT must still stop the stack
     signal.signal(signal.SIGINT, signal.default_int_handler)
-    stack = Stack(nodes=a.nodes, params=a.params, namespace=a.namespace, env=env,
-                  ready_timeout=a.timeout, respawn=a.respawn, respawn_limit=a.respawn_limit,
-                  respawn_delay=a.respawn_delay)
+    try:
+        stack = Stack(nodes=a.nodes, params=a.params, namespace=a.namespace, env=env,
+                      ready_timeout=a.timeout, respawn=a.respawn, respawn_limit=a.respawn_limit,
+                      respawn_delay=a.respawn_delay)
+    except (StackError, FileNotFoundError) as e:  # the configuration cannot run: say why
+        print(f"[bringup] {e}", file=sys.stderr)
+        return 1
     try:
         stack.start()
         stack._say("stack is up" + (" (nodes that die are restarted)" if a.respawn else "") +
