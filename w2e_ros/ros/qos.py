@@ -1,7 +1,9 @@
 """Every QoS the stack uses, chosen in one place so publishers and subscribers agree.
 
 * Sensor streams (camera clouds): best effort, keep the last few; a late frame is worth
-  nothing, and a reliable subscriber would still match a best-effort publisher's data.
+  nothing. A subscriber must ask for best effort too (``SENSOR_QOS``): a reliable subscriber
+  does NOT match a best-effort publisher (requested reliability exceeds what is offered) and
+  receives nothing, while a best-effort subscriber matches either kind of publisher.
 * Commands, results and progress: reliable, so no step of a loop is silently lost.
 * State that a node needs on start-up (the latest segmented objects, the latest affordance
   maps for RViz): reliable + transient local, depth 1, so a late joiner gets the last one.
