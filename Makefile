@@ -56,9 +56,9 @@ $(STAMP)/package: setup.py package.xml $(STAMP)/python
 package: $(STAMP)/package
 
 # --- `source .venv/bin/activate` sets AMENT_PREFIX_PATH & co. (deactivate restores them) ---
-$(STAMP)/activate: scripts/venv_ros_env.sh | $(PY)
+$(STAMP)/activate: config/venv_ros_env.sh | $(PY)
 	@mkdir -p $(STAMP)
-	bash scripts/venv_ros_env.sh $(VENV)
+	bash config/venv_ros_env.sh $(VENV)
 	@touch $@
 activate: $(STAMP)/activate
 

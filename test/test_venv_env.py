@@ -1,6 +1,6 @@
 """`source .venv/bin/activate` gives a shell the ROS environment the venv holds (ament index:
 this package and its interfaces), `deactivate` puts the shell back, and `make install` extends
-the activate script of a fresh venv (scripts/venv_ros_env.sh, idempotent)."""
+the activate script of a fresh venv (config/venv_ros_env.sh, idempotent)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-SCRIPT = ROOT / "scripts" / "venv_ros_env.sh"
+SCRIPT = ROOT / "config" / "venv_ros_env.sh"
 VENV = Path(sys.prefix)
 
 LOOKUP = ("from ament_index_python.packages import get_package_share_directory as g; "
@@ -73,4 +73,4 @@ def test_make_install_extends_the_activate_script():
     res = subprocess.run(["make", "-n", "install", "STAMP=/nonexistent/stamps"], cwd=ROOT,
                          capture_output=True, text=True, timeout=60)
     assert res.returncode == 0, res.stderr
-    assert "bash scripts/venv_ros_env.sh .venv" in res.stdout
+    assert "bash config/venv_ros_env.sh .venv" in res.stdout

@@ -2,7 +2,7 @@
 # Make `source VENV/bin/activate` set the ROS environment the venv holds, and `deactivate`
 # restore what was there before.
 #
-#   bash scripts/venv_ros_env.sh [VENV]        (default: .venv next to scripts/)
+#   bash config/venv_ros_env.sh [VENV]         (default: the repository's .venv)
 #
 # Why: the ROS 2 wheels fix LD_LIBRARY_PATH inside each Python process, but nothing sets
 # AMENT_PREFIX_PATH, so ament_index (get_package_share_directory('w2e_ros'), the interface
@@ -27,7 +27,7 @@ VARS=(
   'ROS_VERSION=2'
   'ROS_PYTHON_VERSION=3'
 )
-BEGIN='# >>> w2e_ros ROS environment (scripts/venv_ros_env.sh) >>>'
+BEGIN='# >>> w2e_ros ROS environment (config/venv_ros_env.sh)'
 END='# <<< w2e_ros ROS environment <<<'
 
 restore="    $BEGIN"$'\n'"    if [ -n \"\${_W2E_ROS_ENV:-}\" ] ; then"$'\n'
