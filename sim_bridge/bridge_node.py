@@ -39,7 +39,7 @@ from __future__ import annotations
 import threading
 import time
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
@@ -52,14 +52,14 @@ from w2e_msgs.action import FollowWaypoints
 from w2e_msgs.msg import SceneObject
 from w2e_msgs.srv import LoadScene
 
-from sim_bridge.camera import PosedMesh, make_camera, view_pose
+from sim_bridge.camera import PosedMesh, check_backend, make_camera, view_pose
 from sim_bridge.geometry import box_mesh, make_pose, transform_points
 from sim_bridge.objects import make_object
 from sim_bridge.objects.model import ObjectModel
 from sim_bridge.world import ObjectWorld
 from w2e_ros.core import kinematics as kin
 from w2e_ros.ros.conversions import from_pose, to_pose, to_vector3
-from w2e_ros.ros.params import declare_typed_parameters, describe, param
+from w2e_ros.ros.params import ParameterError, declare_typed_parameters, describe, param
 from w2e_ros.ros.pointcloud import MOVABLE_FIELD, arrays_to_cloud
 from w2e_ros.ros.qos import RELIABLE_QOS, SENSOR_QOS
 from w2e_ros.ros.spin import run_node
@@ -86,6 +86,10 @@ class BridgeSettings:
     camera_distance: float = param(
         0.0, "camera distance from the scene centre (0: 5 units, or farther so all fit)",
         min=0.0)
+    camera_backend: str = param(
+        "raycast", "raycast (Open3D; the torch caster where Open3D is missing) | torch (the "
+        "same ray cast in torch, on camera_device) | sapien (rasterised, needs Vulkan)")
+    camera_device: str = param("auto", "torch camera: auto (CUDA when present) | cpu | cuda[:N]")
     table: bool = param(True, "add a table under the objects (its points have object_id 0)")
     layout_gap: float = param(0.3, "gap between objects laid out side by side (m)", min=0.0)
     initial_scene: list[str] = param(
@@ -121,6 +125,10 @@ class SimBridgeNode(Node):
         """``node_kwargs`` go to Node (context, parameter_overrides: tests)."""
         super().__init__("sim_bridge", **node_kwargs)
         self.settings = declare_typed_parameters(self, BridgeSettings)
+        try:
+            check_backend(self.settings.camera_backend, self.settings.camera_device)
+        except ValueError as exc:
+            raise ParameterError(self.get_fully_qualified_name(), str(exc)) from None
         self.get_logger().info(f"settings: {describe(self.settings)}")
         self._lock = threading.Lock()  # guards the scene: camera vs. trials vs. loading
         self._objects: list[_SceneObject] = []
@@ -309,7 +317,9 @@ class SimBridgeNode(Node):
             # after a trial ended shows the trial's result (the executor's clouds rely on it)
             stamp = self.get_clock().now().to_msg()
         if self._camera is None:
-            self._camera = make_camera(self._world.settings.camera)
+            self._camera = make_camera(replace(self._world.settings.camera,
+                                               backend=self.settings.camera_backend,
+                                               device=self.settings.camera_device))
         obs = self._camera.capture(meshes, pose)
         idx = np.arange(len(obs.points))
         if 0 < self.settings.max_points < len(idx):

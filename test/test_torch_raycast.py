@@ -210,3 +210,37 @@ def test_cuda_caster_matches_the_cpu_caster() -> None:
     ia, ib = _common(a, b)
     assert (a.link_ids[ia] != b.link_ids[ib]).sum() <= TIE_FRACTION * n
     assert np.abs(a.points[ia] - b.points[ib]).max() < 1e-4
+
+
+def test_bridge_takes_the_camera_backend_as_a_parameter_and_refuses_an_unknown_one():
+    """sim_bridge's camera_backend / camera_device parameters pick the camera that publishes;
+    a typo stops the node with one line naming the known back ends."""
+    import subprocess
+    import sys
+
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from sim_bridge.bridge_node import SimBridgeNode
+    from sim_bridge.camera import TorchRaycastCamera
+
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    try:
+        node = SimBridgeNode(context=ctx, parameter_overrides=[
+            Parameter("camera_backend", value="torch"), Parameter("camera_device", value="cpu"),
+            Parameter("initial_scene", value=["cabinet:0"]),
+            Parameter("publish_rate_hz", value=0.0)])
+        try:
+            msg = node.capture()
+            assert isinstance(node._camera, TorchRaycastCamera)
+            assert msg is not None and msg.width > 1000
+        finally:
+            node.destroy_node()
+    finally:
+        rclpy.shutdown(context=ctx)
+    proc = subprocess.run([sys.executable, "-m", "sim_bridge.bridge_node", "--ros-args", "-p",
+                           "camera_backend:=open3d"], capture_output=True, text=True, timeout=60)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode != 0
+    assert "unknown camera backend 'open3d'" in out and "Traceback" not in out
