@@ -31,7 +31,8 @@ READY_TIMEOUT_S = 180.0  # bring-up: the nodes, then their services
 def add_arguments(p: argparse.ArgumentParser) -> None:
     cats = load_categories()
     # bucket pull: of the novel categories, the one that learns most from its own
-    # interactions (per-category learnability) and where Full-data beats ours most
+    # interactions on the validation split (w2e learnability --validate --per-category;
+    # bench/results/demo_choice), never chosen on the test split it is shown on
     p.add_argument("--category", default="bucket", choices=cats.novel(),
                    help="novel category of the default combination (default bucket)")
     p.add_argument("--primitive", default="pull", choices=["push", "pull"])
