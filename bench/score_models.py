@@ -5,7 +5,8 @@ between recipes needs the uncertainty of that number. Each ``LABEL=MODEL_PT@VAL_
 is scored on its own validation collections (a 4,096-point model on 4,096-point clouds):
 per-category AUROC of the training categories (held-out instances), their mean (the
 training score), and the novel categories' pooled AUROC, each with a 95 % interval that
-resamples whole observations.
+resamples whole observations; and every held-out row pooled (how a Full-data model, which has no
+novel categories, compares on a novel collection).
 
     .venv/bin/python bench/score_models.py \
         obs750=runs_scale/obs750_pull/model.pt@data/val/cfw_heldout_big,data/valset/novel_cfw \
@@ -43,6 +44,9 @@ def score(model_path: str, val_dirs: list[str], n_boot: int) -> dict:
     out = {"model": model_path, "step": meta.get("step"), "val": val_dirs,
            "positives": int(y[np.isin(cats, train_cats)].sum())}
     out["training_score"] = bootstrap_ci(training_score, data.obs_index, n_boot)
+    # every held-out row pooled, whatever its category: a Full-data model has no "novel"
+    # group (it trains on every category), so this is how it compares on novel collections
+    out["pooled_auroc"] = bootstrap_ci(lambda r: auroc(prob[r], y[r]), data.obs_index, n_boot)
     for c in train_cats:
         m = np.flatnonzero(cats == c)
         out[f"{c}_auroc"] = bootstrap_ci(lambda r, m=m: auroc(prob[m][r], y[m][r]),
@@ -70,7 +74,8 @@ def main() -> int:
         label, rest = spec.split("=", 1)
         path, _, dirs = rest.partition("@")
         rows[label] = score(path, dirs.split(","), a.boot)
-    keys = [k for k in next(iter(rows.values())) if isinstance(rows[next(iter(rows))][k], tuple)]
+    keys = list(dict.fromkeys(k for r in rows.values() for k, v in r.items()
+                              if isinstance(v, tuple)))
 
     def cell(v) -> str:
         return "–" if v is None else f"{100 * v[0]:.1f} [{100 * v[1]:.1f}, {100 * v[2]:.1f}]"
