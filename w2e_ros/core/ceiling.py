@@ -119,10 +119,10 @@ class _StoredTrial:
             return False
 
 
-def label_smoothness(cfg: LabelCheckConfig, world=None) -> dict:
-    """Replay and perturb stored trials; per primitive and category, the share of labels kept.
-
-    Writes ``labels.json`` and ``labels.md`` under ``cfg.out``."""
+def _run_stored_trials(cfg: LabelCheckConfig | OracleConfig, desc: str, fill,
+                       world=None) -> tuple[list[dict], float]:
+    """Pick valid stored trials per primitive (see ``_pick_trials``) and let ``fill(trial,
+    row, world, rng)`` add what it measures to each trial's row; (rows, seconds)."""
     from tqdm import tqdm
 
     from w2e_ros.core.sim_world import SimWorld
@@ -130,19 +130,30 @@ def label_smoothness(cfg: LabelCheckConfig, world=None) -> dict:
     data = InteractionData.load(cfg.data)
     world = world or SimWorld(num_points=int(data.points.shape[1]))
     rng = np.random.default_rng(cfg.seed)
-    rows_out: list[dict] = []
+    rows: list[dict] = []
     t0 = time.perf_counter()
     for prim in cfg.primitives:
         picked = _pick_trials(data, prim, cfg.trials_per_primitive, cfg.positive_share, rng)
-        for r in tqdm(picked, desc=f"labels {prim}", unit="trial"):
+        for r in tqdm(picked, desc=f"{desc} {prim}", unit="trial"):
             trial = _StoredTrial(data, int(r))
             row = {"primitive": prim, "category": trial.target.category, "row": int(r),
                    "label": bool(data.success[r])}
-            for name, shift, turn in PERTURBATIONS:
-                row[name] = trial.run(world, shift, turn, rng)
-            rows_out.append(row)
+            fill(trial, row, world, rng)
+            rows.append(row)
+    return rows, time.perf_counter() - t0
+
+
+def label_smoothness(cfg: LabelCheckConfig, world=None) -> dict:
+    """Replay and perturb stored trials; per primitive and category, the share of labels kept.
+
+    Writes ``labels.json`` and ``labels.md`` under ``cfg.out``."""
+    def fill(trial: _StoredTrial, row: dict, world, rng: np.random.Generator) -> None:
+        for name, shift, turn in PERTURBATIONS:
+            row[name] = trial.run(world, shift, turn, rng)
+
+    rows_out, seconds = _run_stored_trials(cfg, "labels", fill, world)
     result = summarize_labels(rows_out)
-    result["seconds"] = time.perf_counter() - t0
+    result["seconds"] = seconds
     result["config"] = asdict(cfg)
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -212,29 +223,16 @@ def local_oracle(cfg: OracleConfig, world=None) -> dict:
     stored contact itself excluded) give that rate, scored against the stored labels. A
     rough ceiling, not a bound: a network may read more from the points' arrangement, and
     ``samples`` draws make the rate coarse. Writes ``oracle.json`` and ``oracle.md``."""
-    from tqdm import tqdm
+    def fill(trial: _StoredTrial, row: dict, world, rng: np.random.Generator) -> None:
+        for radius in cfg.radii:
+            # uniform over the disc: the distance's square is uniform
+            dist = radius * np.sqrt(rng.uniform(size=cfg.samples))
+            row[_radius_key(radius)] = float(np.mean([trial.run(world, d, 0.0, rng)
+                                                      for d in dist]))
 
-    from w2e_ros.core.sim_world import SimWorld
-
-    data = InteractionData.load(cfg.data)
-    world = world or SimWorld(num_points=int(data.points.shape[1]))
-    rng = np.random.default_rng(cfg.seed)
-    trials: list[dict] = []
-    t0 = time.perf_counter()
-    for prim in cfg.primitives:
-        picked = _pick_trials(data, prim, cfg.trials_per_primitive, cfg.positive_share, rng)
-        for r in tqdm(picked, desc=f"oracle {prim}", unit="trial"):
-            trial = _StoredTrial(data, int(r))
-            row = {"primitive": prim, "category": trial.target.category, "row": int(r),
-                   "label": bool(data.success[r])}
-            for radius in cfg.radii:
-                # uniform over the disc: the distance's square is uniform
-                dist = radius * np.sqrt(rng.uniform(size=cfg.samples))
-                row[_radius_key(radius)] = float(np.mean([trial.run(world, d, 0.0, rng)
-                                                          for d in dist]))
-            trials.append(row)
+    trials, seconds = _run_stored_trials(cfg, "oracle", fill, world)
     result = {"primitives": summarize_oracle(trials, cfg.radii, cfg.boot),
-              "seconds": time.perf_counter() - t0, "config": asdict(cfg)}
+              "seconds": seconds, "config": asdict(cfg)}
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "oracle.json").write_text(json.dumps({**result, "trials": trials}, indent=1))
