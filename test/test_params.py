@@ -14,7 +14,6 @@ import pytest
 
 pytest.importorskip("rclpy")
 
-import rclpy  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 
@@ -28,14 +27,6 @@ class _Settings:
     num_points: int = param(2048, "points per object")
     workspace: list[float] = param([-1.0, 1.0], "crop box")
     label: str = param("x", "a string")
-
-
-@pytest.fixture
-def ros_context():
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx)
-    yield ctx
-    rclpy.try_shutdown(context=ctx)
 
 
 def _declare(ctx, *overrides: Parameter) -> tuple[Node, _Settings | Exception]:

@@ -12,7 +12,6 @@ import pytest
 pytest.importorskip("rclpy")
 pytest.importorskip("w2e_msgs.msg", reason="w2e_msgs not built: make interfaces")
 
-import rclpy  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import PointCloud2, PointField  # noqa: E402
 
@@ -272,14 +271,6 @@ class _Settings:
     enabled: bool = param(True, "whether to publish")
     workspace: list[float] = param([-1.0, 1.0], "crop box")
     names: list[str] = param([], "empty list default")
-
-
-@pytest.fixture
-def ros_context():
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx)
-    yield ctx
-    rclpy.try_shutdown(context=ctx)
 
 
 def test_typed_parameters_are_declared_with_defaults_and_overrides(ros_context):
