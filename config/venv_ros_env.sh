@@ -7,8 +7,10 @@
 # Why: the ROS 2 wheels fix LD_LIBRARY_PATH inside each Python process, but nothing sets
 # AMENT_PREFIX_PATH, so ament_index (get_package_share_directory('w2e_ros'), the interface
 # lookups, launch) finds neither this package nor w2e_msgs, which both install into the venv
-# prefix. The venv's activate script (bash and zsh) gets two marked blocks: one at its end sets
-# the variables below and remembers their old values, one inside deactivate() puts those back.
+# prefix; and Fast DDS loses large clouds between processes without the stack's transport
+# profile (config/fastdds_large_messages.xml, installed under share/w2e_ros/config). The venv's
+# activate script (bash and zsh) gets two marked blocks: one at its end sets the variables below
+# and remembers their old values, one inside deactivate() puts those back.
 # Re-running replaces the blocks (idempotent); a recreated venv needs one more run, which
 # `make install` does. fish and csh activation are not extended.
 set -euo pipefail
@@ -26,6 +28,10 @@ VARS=(
   'ROS_DISTRO=jazzy'
   'ROS_VERSION=2'
   'ROS_PYTHON_VERSION=3'
+  # the Fast DDS profile for large messages (fastdds_large_messages.xml: camera clouds between
+  # processes); a profile the shell names already wins. FASTRTPS_ for Fast DDS 2.x, FASTDDS_ 3.x
+  'FASTRTPS_DEFAULT_PROFILES_FILE=${FASTRTPS_DEFAULT_PROFILES_FILE:-${FASTDDS_DEFAULT_PROFILES_FILE:-$VIRTUAL_ENV/share/w2e_ros/config/fastdds_large_messages.xml}}'
+  'FASTDDS_DEFAULT_PROFILES_FILE=${FASTDDS_DEFAULT_PROFILES_FILE:-$FASTRTPS_DEFAULT_PROFILES_FILE}'
 )
 BEGIN='# >>> w2e_ros ROS environment (config/venv_ros_env.sh)'
 END='# <<< w2e_ros ROS environment <<<'

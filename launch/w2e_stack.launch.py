@@ -13,14 +13,17 @@ The same nodes, names and parameter file as ``w2e bringup`` (which is what runs 
                              launch_ros waits respawn_delay:=<s> each time, with no limit)
 
 Each node gets its own section of the YAML as a parameter dictionary, so the plain
-``node_name:`` keys work under any namespace (what nav2 does with RewrittenYaml).
+``node_name:`` keys work under any namespace (what nav2 does with RewrittenYaml). The nodes
+load the Fast DDS profile for large messages (share/w2e_ros/config/fastdds_large_messages.xml)
+unless the shell names a profile already (FASTRTPS_/FASTDDS_DEFAULT_PROFILES_FILE), as
+``w2e bringup`` does.
 """
 
 import os
 
 import yaml
 from ament_index_python.packages import get_package_share_directory
-from launch.actions import DeclareLaunchArgument, OpaqueFunction
+from launch.actions import DeclareLaunchArgument, OpaqueFunction, SetEnvironmentVariable
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
@@ -35,6 +38,9 @@ NODES = {
     "executor": ("executor_node", "executor"),
     "planner": ("planner_node", "planner_node"),
 }
+# the Fast DDS profile for large messages (as w2e_ros.ros.transport), read by Fast DDS 2.x / 3.x
+PROFILE_FILE = "fastdds_large_messages.xml"
+PROFILE_VARS = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE")
 
 
 def _nodes(context, *args, **kwargs):
@@ -83,10 +89,18 @@ def _nodes(context, *args, **kwargs):
     return actions
 
 
+def _transport_profile() -> list[SetEnvironmentVariable]:
+    """Both profile variables: the shell's profile where either is set, else the shipped one."""
+    shipped = os.path.join(get_package_share_directory("w2e_ros"), "config", PROFILE_FILE)
+    chosen = next((os.environ[v] for v in PROFILE_VARS if os.environ.get(v)), shipped)
+    return [SetEnvironmentVariable(v, os.environ.get(v) or chosen) for v in PROFILE_VARS]
+
+
 def generate_launch_description() -> LaunchDescription:
     default_params = os.path.join(
         get_package_share_directory("w2e_ros"), "config", "w2e_stack.yaml")
     return LaunchDescription([
+        *_transport_profile(),
         DeclareLaunchArgument("namespace", default_value="",
                               description="namespace of every node"),
         DeclareLaunchArgument("params_file", default_value=default_params,

@@ -12,6 +12,8 @@ from pathlib import Path
 
 import pytest
 
+from w2e_ros.ros.transport import PROFILE_FILE, PROFILE_VARS
+
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "config" / "venv_ros_env.sh"
 VENV = Path(sys.prefix)
@@ -24,7 +26,7 @@ LOOKUP = ("from ament_index_python.packages import get_package_share_directory a
 def _bash(script: str, **env: str) -> subprocess.CompletedProcess:
     """A login-free bash with no ROS variables of its own, in the repository root."""
     clean = {k: v for k, v in os.environ.items()
-             if k not in ("AMENT_PREFIX_PATH", "ROS_DISTRO", "VIRTUAL_ENV")
+             if k not in ("AMENT_PREFIX_PATH", "ROS_DISTRO", "VIRTUAL_ENV", *PROFILE_VARS)
              and not k.startswith("_ROS_WHEELS")}
     clean.update(env)
     return subprocess.run(["bash", "-c", script], cwd=ROOT, env=clean, capture_output=True,
@@ -74,3 +76,17 @@ def test_make_install_extends_the_activate_script():
                          capture_output=True, text=True, timeout=60)
     assert res.returncode == 0, res.stderr
     assert "bash config/venv_ros_env.sh .venv" in res.stdout
+
+
+def test_activation_sets_the_transport_profile_unless_the_shell_names_one(fresh_venv: Path):
+    subprocess.run(["bash", str(SCRIPT), str(fresh_venv)], check=True, timeout=60,
+                   capture_output=True)
+    show = 'echo "${FASTRTPS_DEFAULT_PROFILES_FILE-unset}|${FASTDDS_DEFAULT_PROFILES_FILE-unset}"'
+    act = f'source "{fresh_venv}/bin/activate"'
+    shipped = f"{fresh_venv}/share/w2e_ros/config/{PROFILE_FILE}"
+    res = _bash(f"{show}; {act}; {show}; {act}; {show}; deactivate; {show}")
+    assert res.stdout.split() == ["unset|unset", f"{shipped}|{shipped}", f"{shipped}|{shipped}",
+                                  "unset|unset"], res.stderr
+    # a profile the user chose (either variable) wins, and deactivate leaves it as it was
+    res = _bash(f"{act}; {show}; deactivate; {show}", FASTDDS_DEFAULT_PROFILES_FILE="/my.xml")
+    assert res.stdout.split() == ["/my.xml|/my.xml", "unset|/my.xml"], res.stderr

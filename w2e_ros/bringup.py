@@ -5,8 +5,10 @@ Every node runs as its own process under this Python (the venv's), as
 with ``[name]``; its parameters are the YAML section named as the node names itself. The
 stack is up when every node's services, actions and topics are visible on the ROS graph; it
 is stopped with TERM, a wait, TERM again, then KILL, and the Fast DDS shared-memory files its
-processes leave are removed. With ``respawn`` a node process that exits on its own is started
-again (the same command), after a delay that doubles from ``respawn_delay`` up to
+processes leave are removed. Node processes get the Fast DDS transport profile for large
+messages (``config/fastdds_large_messages.xml``, see ``w2e_ros.ros.transport``) unless the
+environment names a profile already. With ``respawn`` a node process that exits on its own is
+started again (the same command), after a delay that doubles from ``respawn_delay`` up to
 ``RESPAWN_MAX_DELAY`` s, at most ``respawn_limit`` times per node; each exit and restart is
 logged (``[bringup] node executor died (SIGKILL); restart 1 of 5 in 1.0 s``).
 
@@ -40,6 +42,7 @@ import yaml
 
 from w2e_ros.paths import config_dir
 from w2e_ros.ros.processes import clean_shm, ros_env, shm_files, stop_process, venv_python
+from w2e_ros.ros.transport import with_transport_profile
 
 
 @dataclass(frozen=True)
@@ -201,7 +204,9 @@ class Stack:
         if not self.params.exists():
             raise FileNotFoundError(f"parameter file {self.params} does not exist")
         self.namespace = "/" + namespace.strip("/") if namespace.strip("/") else ""
-        self.env = ros_env(base=env, localhost_only=False)
+        # node processes load config/fastdds_large_messages.xml (large clouds between
+        # processes) unless the environment names a Fast DDS profile already
+        self.env = with_transport_profile(ros_env(base=env, localhost_only=False))
         self.output = output
         self.ready_timeout = ready_timeout
         self.extra_args = {k: list(v) for k, v in (extra_args or {}).items()}
