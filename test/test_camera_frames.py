@@ -115,11 +115,8 @@ def scene() -> Scene:
 
 
 @pytest.fixture
-def context():
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx)
-    yield ctx
-    rclpy.try_shutdown(context=ctx)
+def context(ros_context):
+    return ros_context
 
 
 def _node(context, **params):
