@@ -1,4 +1,4 @@
-"""Write the README's benchmark tables from ``bench/results/benchmark.json``.
+"""Write the benchmark tables of docs/results.md from ``bench/results/benchmark.json``.
 
 The README's numbers must come from the committed results, not be typed by hand: this
 renders the headline table (mean over seeds with 95 % bootstrap intervals, and the paired
@@ -142,7 +142,7 @@ def rewrite(text: str, doc: dict) -> str:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", default=str(ROOT / "bench" / "results" / "benchmark.json"))
-    ap.add_argument("--readme", default=str(ROOT / "README.md"))
+    ap.add_argument("--readme", default=str(ROOT / "docs" / "results.md"))
     ap.add_argument("--check", action="store_true", help="exit 1 if the README is stale")
     a = ap.parse_args(argv)
     doc = json.loads(Path(a.json).read_text())
