@@ -147,7 +147,11 @@ class RayBackend(Backend):
 
     def map(self, fn: Callable[[T], R], jobs: Sequence[T]) -> Iterator[tuple[int, R]]:
         ray = self._connect()
-        task = ray.remote(num_cpus=1, max_retries=0)(_call_indexed)
+        # a worker that dies (killed under memory pressure, a crash in native code) is
+        # retried twice: jobs are deterministic and return their results to this process
+        # (which writes the shards), so a retry gives the same result; an exception raised
+        # by the job itself is not retried
+        task = ray.remote(num_cpus=1, max_retries=2, retry_exceptions=False)(_call_indexed)
         pending = [task.remote(fn, (i, job)) for i, job in enumerate(jobs)]
         try:
             with _term_as_interrupt():
