@@ -60,6 +60,7 @@ from sim_bridge.world import ObjectWorld
 from w2e_ros.core import kinematics as kin
 from w2e_ros.ros.conversions import from_pose, to_pose, to_vector3
 from w2e_ros.ros.params import ParameterError, declare_typed_parameters, describe, param
+from w2e_ros.ros.peers import announce
 from w2e_ros.ros.pointcloud import MOVABLE_FIELD, arrays_to_cloud
 from w2e_ros.ros.qos import RELIABLE_QOS, SENSOR_QOS
 from w2e_ros.ros.spin import run_node
@@ -167,6 +168,8 @@ class SimBridgeNode(Node):
                                      RELIABLE_QOS, callback_group=arm_group)
             self._physics = threading.Thread(target=self._run_physics, daemon=True)
             self._physics.start()
+        announce(self, ["load_scene"] + (["follow_waypoints"] if self.settings.robot == "flying"
+                                         else []))
         period = 1.0 / self.settings.publish_rate_hz if self.settings.publish_rate_hz > 0 else 0.5
         self.create_timer(period, self._on_camera_timer, callback_group=sensor_group)
 

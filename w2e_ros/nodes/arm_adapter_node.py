@@ -45,6 +45,7 @@ from w2e_ros.core import kinematics as kin
 from w2e_ros.ros.action_client import LockedActionClient
 from w2e_ros.ros.conversions import from_pose, to_pose
 from w2e_ros.ros.params import ParameterError, declare_typed_parameters, describe, param
+from w2e_ros.ros.peers import announce
 from w2e_ros.ros.qos import LATCHED_QOS, RELIABLE_QOS
 from w2e_ros.ros.spin import run_node
 from w2e_ros.ros.waypoints import GRIPPER_CLOSE, GRIPPER_KEEP, GRIPPER_OPEN
@@ -147,6 +148,7 @@ class ArmAdapterNode(Node):
             goal_callback=lambda _g: GoalResponse.ACCEPT,
             cancel_callback=lambda _g: CancelResponse.REJECT,  # a trial is atomic
             callback_group=MutuallyExclusiveCallbackGroup())
+        announce(self, ["follow_waypoints"])
         mode = "dry run: plans only" if s.dry_run else f"live: {CONTROLLER_TOPIC}"
         self.get_logger().info(f"arm adapter up ({mode}; joints {self.joint_names[0]}..7)")
 

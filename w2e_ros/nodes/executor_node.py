@@ -55,6 +55,7 @@ from w2e_ros.ros.conversions import (
     trial_result_to_outcome,
 )
 from w2e_ros.ros.params import ParameterError, declare_typed_parameters, describe, param
+from w2e_ros.ros.peers import PeerWatch, announce
 from w2e_ros.ros.pointcloud import cloud_to_arrays
 from w2e_ros.ros.qos import LATCHED_QOS
 from w2e_ros.ros.spin import run_node
@@ -88,17 +89,28 @@ class ExecutorSettings:
         min=0.0)
 
 
+class PeerLostError(RuntimeError):
+    """The robot side's process died or was restarted while a trial waited on it."""
+
+
 class _Waiter:
     """Wait in a worker thread for a future that another executor thread completes."""
 
-    def __init__(self, future) -> None:
+    def __init__(self, future, check=None) -> None:
+        """``check()``: why the server cannot answer any more (None while it can)."""
         self._event = threading.Event()
         future.add_done_callback(lambda _f: self._event.set())
         self.future = future
+        self.check = check
 
     def wait(self, timeout: float):
-        if not self._event.wait(timeout):
-            raise TimeoutError
+        deadline = time.monotonic() + timeout
+        while not self._event.wait(min(0.5, max(0.0, deadline - time.monotonic()))):
+            if time.monotonic() >= deadline:
+                raise TimeoutError
+            why = self.check() if self.check is not None else None
+            if why:
+                raise PeerLostError(why)
         return self.future.result()
 
 
@@ -130,6 +142,10 @@ class GripperExecutorNode(Node):
             goal_callback=lambda _goal: GoalResponse.ACCEPT,
             cancel_callback=lambda _goal: CancelResponse.REJECT,  # a trial is atomic
             callback_group=MutuallyExclusiveCallbackGroup())
+        announce(self, ["execute_interaction"])
+        # the robot side's process (bridge or arm adapter): its death ends a trial at once
+        self._robot_peer = PeerWatch(self, s.robot_action, "the robot side",
+                                     callback_group=ReentrantCallbackGroup())
 
     def _execute(self, goal_handle) -> ExecuteInteraction.Result:
         interaction = goal_handle.request.interaction
@@ -174,15 +190,23 @@ class GripperExecutorNode(Node):
                                 "node running?)")
             if not self._robot.wait_for_server(timeout_sec=self.settings.server_timeout_s):
                 return fail(f"robot action {self.settings.robot_action!r} is not available")
+            robot = self._robot_peer.current()
+
+            def check() -> str | None:
+                return self._robot_peer.check(robot)
+
             try:
                 sent = _Waiter(self._robot.send_goal_async(
-                    goal, feedback_callback=on_robot_feedback)).wait(
+                    goal, feedback_callback=on_robot_feedback), check).wait(
                     self.settings.server_timeout_s)
                 if not sent.accepted:
                     return fail("the robot side rejected the trajectory")
-                res = _Waiter(sent.get_result_async()).wait(self.settings.trial_timeout_s).result
+                res = _Waiter(sent.get_result_async(), check).wait(
+                    self.settings.trial_timeout_s).result
             except TimeoutError:
                 return fail("the robot side did not answer in time")
+            except PeerLostError as err:
+                return fail(f"{self.settings.robot_action}: {err}")
             self._last_end = self.get_clock().now() + Duration(
                 seconds=self.settings.cloud_settle_s)
             after = None

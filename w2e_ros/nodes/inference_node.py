@@ -48,6 +48,7 @@ from w2e_ros.ros.conversions import (
     outcome_to_trial_result,
 )
 from w2e_ros.ros.params import declare_typed_parameters, describe, param
+from w2e_ros.ros.peers import announce
 from w2e_ros.ros.pointcloud import (
     CloudFormatError,
     arrays_to_cloud,
@@ -172,6 +173,7 @@ class InferenceNode(Node):
         self.create_service(PredictMaps, "predict_maps", self.on_predict_maps)
         self.create_service(UpdateModel, "update_model", self.on_update_model)
         self.create_service(Trigger, "reset_model", self.on_reset)
+        announce(self, ["predict_maps", "update_model"])  # a restart is seen by its callers
         self.get_logger().info(
             f"serving {sorted(self.served) or 'no model'} on {self.device}; checkpoints in "
             f"{self.adapted_dir}; {describe(s)}")

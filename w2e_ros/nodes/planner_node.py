@@ -22,7 +22,9 @@ session's checkpoint after every update; an explore call for a session whose las
 finish restores both in the inference node and continues where the run stopped.
 
 Every wait on another node has a timeout (parameters): a dead inference or executor node
-turns into success=false with a message, never a hung service.
+turns into success=false with a message, never a hung service. A call pins the processes that
+serve it (``w2e_ros.ros.peers``): one that dies or is restarted (``--respawn``) mid-call ends
+the call within seconds, saying which, instead of waiting out the timeout.
 """
 
 from __future__ import annotations
@@ -70,6 +72,7 @@ from w2e_ros.ros.conversions import (
     trial_result_to_outcome,
 )
 from w2e_ros.ros.params import declare_typed_parameters, describe, param
+from w2e_ros.ros.peers import PeerWatch
 from w2e_ros.ros.pointcloud import arrays_to_cloud, cloud_to_arrays, movable_mask
 from w2e_ros.ros.qos import LATCHED_QOS, RELIABLE_QOS
 from w2e_ros.ros.spin import run_node
@@ -144,23 +147,36 @@ def default_log_dir() -> Path:
 BUSY = "busy: another explore/manipulate is running"
 
 
+POLL_S = 0.5  # s between two looks at the server of a request in flight
+
+# the servers the planner waits on: service / action name -> the node that serves it
+PEERS = {"predict_maps": "inference_node", "update_model": "inference_node",
+         "load_scene": "sim_bridge", "execute_interaction": "executor"}
+
+
 class StackError(RuntimeError):
     """Another node did not answer, answered with an error, or is gone."""
 
 
 def wait_future(future: Future, timeout: float, what: str,
-                alive: Callable[[], bool] | None = None) -> Any:
+                alive: Callable[[], bool] | None = None,
+                check: Callable[[], str | None] | None = None) -> Any:
     """Block this (executor) thread until another thread completes ``future``; give up after
-    ``timeout``, or early once ``alive()`` says the server has left the graph."""
+    ``timeout``, at once when ``check()`` gives a reason (the server died or restarted:
+    :class:`w2e_ros.ros.peers.PeerWatch`), or once ``alive()`` says the server has left the
+    graph (a server that does not announce itself: ~20 s after a SIGKILL)."""
     done = threading.Event()
     future.add_done_callback(lambda _f: done.set())
     deadline = time.monotonic() + timeout
     gone = 0
-    while not done.wait(min(1.0, max(0.0, deadline - time.monotonic()))):
+    while not done.wait(min(POLL_S, max(0.0, deadline - time.monotonic()))):
         if time.monotonic() >= deadline:
             raise StackError(f"{what}: no answer within {timeout:.0f} s (is the node running?)")
+        why = check() if check is not None else None
+        if why:
+            raise StackError(f"{what}: {why}")
         gone = gone + 1 if alive is not None and not alive() else 0
-        if gone >= 2:
+        if gone >= 2 / POLL_S:
             raise StackError(f"{what}: the server left the ROS graph while answering (did its "
                              "node die?)")
     if future.exception() is not None:
@@ -361,6 +377,10 @@ class PlannerNode(Node):
                                      callback_group=g)
         self.create_subscription(SegmentedObjects, "objects", self.on_objects, LATCHED_QOS,
                                  callback_group=g)
+        # which process serves each name; a call pins them, a restart or death ends it at once
+        self.peers = {name: PeerWatch(self, name, server, callback_group=g)
+                      for name, server in PEERS.items()}
+        self.pinned: dict[str, str | None] = {}
         self.progress_pub = self.create_publisher(ExplorationProgress, "exploration_progress",
                                                   RELIABLE_QOS)
         self.create_service(Explore, "explore", self.on_explore, callback_group=self.user_group)
@@ -373,15 +393,33 @@ class PlannerNode(Node):
         self.get_logger().info(f"planner ready; {describe(self.settings)}")
 
     # --- talking to the other nodes ---------------------------------------------------------
+    def pin_peers(self) -> None:
+        """The processes serving the other nodes now: one explore / manipulate call relies on
+        them (the inference node holds the explored set, the bridge the scene), so a restart
+        of any during the call fails it (the next explore of the session resumes)."""
+        self.pinned = {name: watch.current() for name, watch in self.peers.items()}
+
+    def peer_check(self, name: str) -> Callable[[], str | None]:
+        """Why ``name``'s pinned server cannot answer any more (died, restarted), or None."""
+        def check() -> str | None:
+            if self.pinned.get(name) is None:  # not announced when pinned: the first one seen
+                self.pinned[name] = self.peers[name].current()
+            return self.peers[name].check(self.pinned[name])
+        return check
+
     def call(self, client, request, what: str, timeout: float | None = None):
-        """One service call with a timeout; a refusal (success=false) raises StackError."""
+        """One service call with a timeout; a refusal (success=false) raises StackError, and
+        so does the death or restart of the server (``what`` is the service's name)."""
         s = self.settings
         if not client.wait_for_service(timeout_sec=s.connect_timeout_s):
             raise StackError(f"{what}: service not available (is its node running?)")
+        check = self.peer_check(what)
+        if why := check():
+            raise StackError(f"{what}: {why}")
         future = client.call_async(request)
         try:
             res = wait_future(future, timeout or s.service_timeout_s, what,
-                              alive=client.service_is_ready)
+                              alive=client.service_is_ready, check=check)
         except StackError:
             client.remove_pending_request(future)
             raise
@@ -394,14 +432,18 @@ class PlannerNode(Node):
         if not self.exec_cli.wait_for_server(timeout_sec=s.connect_timeout_s):
             raise StackError("execute_interaction: action server not available (is the "
                              "executor node running?)")
+        check = self.peer_check("execute_interaction")
+        if why := check():
+            raise StackError(f"execute_interaction: {why}")
         goal = ExecuteInteraction.Goal(interaction=interaction)
         handle = wait_future(self.exec_cli.send_goal_async(goal), s.execute_timeout_s,
-                             "execute_interaction (goal)")
+                             "execute_interaction (goal)", check=check)
         if not handle.accepted:
             raise StackError("execute_interaction: goal rejected by the executor")
         try:
             res = wait_future(handle.get_result_async(), s.execute_timeout_s,
-                              "execute_interaction (result)", alive=self.exec_cli.server_is_ready)
+                              "execute_interaction (result)", alive=self.exec_cli.server_is_ready,
+                              check=check)
         except StackError:
             handle.cancel_goal_async()
             raise
@@ -549,6 +591,7 @@ class PlannerNode(Node):
         model: RosModel | None = None
         run: SessionRun | None = None  # the session's run, once this call has started it
         t0 = time.perf_counter()
+        self.pin_peers()
         try:
             s = self.settings
             if req.category:
@@ -679,6 +722,7 @@ class PlannerNode(Node):
             res.success, res.message = False, BUSY
             return res
         t0 = time.perf_counter()
+        self.pin_peers()
         try:
             s = self.settings
             self._check_primitive(req.primitive)

@@ -1,0 +1,176 @@
+"""A server that dies or is restarted while the planner waits on it is seen within seconds.
+
+The server is a separate process serving ``predict_maps`` as the inference node does (same node
+name, same announcement, an answer that never comes), killed with SIGKILL mid-request; with a
+"respawn" a second process takes its name and service at once. ``service_is_ready()`` stays
+true through that, and without the announcement the planner waited its whole
+``service_timeout_s`` (119.7 s measured in issue 28). The planner node runs in the test
+process and its own ``call`` is what is timed.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import pytest
+
+pytest.importorskip("rclpy")
+pytest.importorskip("w2e_msgs.srv", reason="w2e_msgs not built: make interfaces")
+
+import rclpy  # noqa: E402
+from rclpy.executors import MultiThreadedExecutor  # noqa: E402
+from w2e_msgs.srv import PredictMaps  # noqa: E402
+
+from w2e_ros.nodes.planner_node import PlannerNode, StackError  # noqa: E402
+from w2e_ros.ros.peers import LEASE_S  # noqa: E402
+from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, ros_env  # noqa: E402
+
+clean_shm_at_exit()
+
+DETECT_S = 10.0  # issue 28: a dead or restarted peer is seen within 10 s
+
+# The inference node's stand-in: same name, announces predict_maps, never answers a request.
+SERVER = """
+import sys, threading
+import rclpy
+from w2e_msgs.srv import PredictMaps
+from w2e_ros.ros.peers import announce
+
+rclpy.init()
+node = rclpy.create_node("inference_node")
+hold = threading.Event()
+
+def on_request(req, res):
+    print("request", flush=True)
+    hold.wait()  # the answer never comes: the process is killed while "computing"
+    return res
+
+node.create_service(PredictMaps, "predict_maps", on_request)
+if sys.argv[1] == "announce":
+    announce(node, ["predict_maps"])
+print("ready", flush=True)
+rclpy.spin(node)
+"""
+
+
+class Server:
+    def __init__(self, env: dict[str, str], announce: bool = True) -> None:
+        self.proc = subprocess.Popen(
+            [sys.executable, "-c", SERVER, "announce" if announce else "silent"], env=env,
+            stdout=subprocess.PIPE, text=True, bufsize=1)
+        assert self.proc.stdout is not None
+        assert self.proc.stdout.readline().strip() == "ready"
+
+    def wait_request(self) -> None:
+        assert self.proc.stdout is not None
+        assert self.proc.stdout.readline().strip() == "request"
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            os.kill(self.proc.pid, signal.SIGKILL)
+        self.proc.wait()
+
+
+@pytest.fixture
+def planner(tmp_path):
+    """A planner node with the default timeouts, spun in this process; the env of its peers."""
+    domain = pick_domain_id(47)
+    env = ros_env(domain_id=domain, log_dir=tmp_path / "ros_log")
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain)
+    node = PlannerNode(context=ctx, parameter_overrides=[
+        rclpy.parameter.Parameter("exploration_log_dir", value=str(tmp_path / "log"))])
+    executor = MultiThreadedExecutor(num_threads=4, context=ctx)
+    executor.add_node(node)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    servers: list[Server] = []
+    yield node, env, servers
+    for server in servers:
+        server.kill()
+    executor.shutdown()
+    node.destroy_node()
+    rclpy.try_shutdown(context=ctx)
+
+
+def _call_in_thread(node: PlannerNode) -> tuple[threading.Thread, dict]:
+    """node.call(predict_maps) from a worker thread, as the explore loop makes it."""
+    out: dict = {}
+
+    def run() -> None:
+        try:
+            out["result"] = node.call(node.predict_cli, PredictMaps.Request(), "predict_maps")
+        except StackError as exc:
+            out["error"], out["at"] = str(exc), time.monotonic()
+        except Exception as exc:  # noqa: BLE001 - the node torn down under a waiting call
+            out["teardown"] = repr(exc)
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    return thread, out
+
+
+def _pinned(node: PlannerNode, timeout: float = 10.0) -> str:
+    """Pin the servers (an explore call does this first) once the announcement is seen."""
+    end = time.monotonic() + timeout
+    while node.peers["predict_maps"].current() is None and time.monotonic() < end:
+        time.sleep(0.05)
+    node.pin_peers()
+    assert node.pinned["predict_maps"], "no announcement of predict_maps seen"
+    return node.pinned["predict_maps"]
+
+
+def test_a_server_restarted_mid_request_fails_the_call_at_once(planner):
+    node, env, servers = planner
+    servers.append(first := Server(env))
+    _pinned(node)
+    thread, out = _call_in_thread(node)
+    first.wait_request()
+    first.kill()
+    t_kill = time.monotonic()
+    servers.append(Server(env))  # the respawn: same name, same service, a new process
+    thread.join(DETECT_S + 5)
+    assert "error" in out, out
+    took = out["at"] - t_kill
+    print(f"\n[peers] restarted server seen {took:.1f} s after the SIGKILL: {out['error']}")
+    assert took < DETECT_S
+    # "restarted" when the new process announced itself first, else "gone" (it took longer
+    # to start than the old one's lease): either way the call ends, naming the node
+    assert ("inference_node restarted" in out["error"] or "inference_node is gone"
+            in out["error"]) and out["error"].startswith("predict_maps: ")
+    # the next call of the same explore call (same pins) is refused before it is sent
+    with pytest.raises(StackError, match="restarted"):
+        node.call(node.predict_cli, PredictMaps.Request(), "predict_maps")
+
+
+def test_a_server_killed_mid_request_fails_the_call_within_its_lease(planner):
+    node, env, servers = planner
+    servers.append(first := Server(env))
+    _pinned(node)
+    thread, out = _call_in_thread(node)
+    first.wait_request()
+    first.kill()
+    t_kill = time.monotonic()
+    thread.join(DETECT_S + 5)
+    assert "error" in out, out
+    took = out["at"] - t_kill
+    print(f"\n[peers] dead server seen {took:.1f} s after the SIGKILL: {out['error']}")
+    assert took < LEASE_S + 2.0 < DETECT_S
+    assert "inference_node is gone" in out["error"]
+
+
+def test_a_server_that_does_not_announce_is_not_judged(planner):
+    """A third-party server without the announcement: no false alarm while it works."""
+    node, env, servers = planner
+    servers.append(first := Server(env, announce=False))
+    node.pin_peers()
+    assert node.pinned["predict_maps"] is None
+    thread, out = _call_in_thread(node)
+    first.wait_request()
+    time.sleep(LEASE_S + 1.5)
+    assert thread.is_alive() and not out, out  # still waiting for its answer

@@ -1,0 +1,88 @@
+"""``--respawn`` no longer hides a dead node (issue 28, defect 2), driven as a user would: the
+whole stack from ``w2e bringup``'s Stack with respawn and the planner's default timeouts
+(service 120 s, execute 60 s), a plain rclpy action client in another process, SIGKILL of a
+node mid-explore. The respawned node takes the same name; the explore used to wait its whole
+timeout (119.7 s for the inference node, 57 s for the executor). Now it ends within 10 s of the
+kill, naming the node, and the session's next call resumes (test_resume.py checks the resume).
+
+The models have random weights (as in test_resume.py): this checks the plumbing.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+
+import pytest
+
+pytest.importorskip("rclpy")
+pytest.importorskip("w2e_msgs.action", reason="w2e_msgs not built: make interfaces")
+
+import torch  # noqa: E402
+from scenes import Tee  # noqa: E402
+from test_resume import CATEGORY, PRIMITIVE, STATUS, ActionUser  # noqa: E402
+
+from w2e_ros.bringup import Stack  # noqa: E402
+from w2e_ros.core.model import W2EModel, save_model  # noqa: E402
+from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, ros_env  # noqa: E402
+
+pytestmark = pytest.mark.slow
+clean_shm_at_exit()
+
+DETECT_S = 10.0
+
+
+@pytest.fixture(scope="module")
+def stack(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("respawn")
+    ckpt = {}
+    for i, prim in enumerate(("push", "pull")):
+        torch.manual_seed(i)
+        ckpt[prim] = save_model(tmp / f"{prim}.pt", W2EModel(), {"method": "w2e",
+                                                                 "combo": "cfw"})
+    env = ros_env(domain_id=pick_domain_id(53), log_dir=tmp / "ros_log")
+    extra = {
+        "inference": ["-p", f"push_checkpoint:={ckpt['push']}",
+                      "-p", f"pull_checkpoint:={ckpt['pull']}",
+                      "-p", f"adapted_dir:={tmp / 'adapted'}", "-p", "finetune_steps:=2"],
+        # the default service / execute timeouts (120 s / 60 s): the kill must be seen anyway
+        "planner": ["-p", "points_per_object:=64",
+                    "-p", f"exploration_log_dir:={tmp / 'exploration'}"],
+    }
+    out = Tee()
+    with Stack(env=env, output=out, ready_timeout=150.0, extra_args=extra, respawn=True,
+               respawn_delay=0.5) as s:
+        yield s, env, out
+
+
+@pytest.mark.parametrize("victim, server", [("inference", "inference_node"),
+                                            ("executor", "executor")])
+def test_a_node_killed_and_respawned_mid_explore_ends_the_explore_within_seconds(
+        stack, victim, server):
+    s, env, out = stack
+    s.wait_ready(120)
+    goal = dict(category=CATEGORY, instances=[32], primitive=PRIMITIVE, budget=4,
+                similarity_bar=1.0, session=f"kill_{victim}")
+    user = ActionUser(goal, env)
+    try:
+        assert user.next("goal", 60)["accepted"]
+        assert user.next("feedback", 90)["step"] == 1
+        before = s.respawns.get(victim, 0)
+        pid = s.pid(victim)
+        os.kill(pid, signal.SIGKILL)
+        t_kill = time.monotonic()
+        res = user.next("result", 60)
+        took = time.monotonic() - t_kill
+    finally:
+        user.close()
+    print(f"\n[respawn] {victim} killed; the explore ended {took:.1f} s later: "
+          f"{res['message']}")
+    assert STATUS[res["status"]] == "aborted" and not res["success"], res
+    assert took < DETECT_S, (took, res)
+    assert f"{server} restarted" in res["message"] or f"{server} is gone" in res["message"]
+    assert "the next explore of this session continues" in res["message"]
+    end = time.monotonic() + 30
+    while time.monotonic() < end and s.respawns.get(victim, 0) <= before:
+        time.sleep(0.2)
+    assert s.respawns.get(victim, 0) == before + 1 and s.pid(victim) != pid

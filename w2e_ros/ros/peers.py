@@ -1,0 +1,117 @@
+"""Which process answers a request: servers announce their instance, clients watch it.
+
+A node restarted by ``w2e bringup --respawn`` (or launch's ``respawn``) takes the same name and
+serves the same services, so ``service_is_ready()`` stays true and a request the dead process
+was answering is waited for until its timeout; without a restart the server leaves the graph
+only when the DDS participant's lease runs out (~20 s with Fast DDS). Both are seen within
+:data:`LEASE_S` here instead:
+
+* a server calls :func:`announce` with the names it serves: one latched ``std_msgs/String``
+  per name on ``<resolved name>/_alive`` (hidden, next to the service or action), holding the
+  process's instance id, published with automatic DDS liveliness and a lease of
+  :data:`LEASE_S`. The middleware's own threads assert it, so a server busy in a long callback
+  stays alive, and a killed process loses it within the lease;
+* a client makes a :class:`PeerWatch` per name, pins the instance it relies on
+  (:meth:`PeerWatch.current`) and asks :meth:`PeerWatch.check` while it waits: a different
+  instance means the server restarted (what it held in memory and the request in flight are
+  gone), lost liveliness means it died. A server that announces nothing is never judged.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import threading
+import time
+from collections.abc import Sequence
+
+from rclpy.duration import Duration
+from rclpy.event_handler import QoSLivelinessChangedInfo, SubscriptionEventCallbacks
+from rclpy.node import Node
+from rclpy.publisher import Publisher
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    LivelinessPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+)
+from std_msgs.msg import String
+
+LEASE_S = 2.0
+"""Liveliness lease of the announcements (s): a killed server is seen dead within it."""
+
+ALIVE_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=1,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+    liveliness=LivelinessPolicy.AUTOMATIC,
+    liveliness_lease_duration=Duration(seconds=LEASE_S),
+)
+"""Latched, so a client started later learns the instance; liveliness leased."""
+
+
+def alive_topic(node: Node, name: str) -> str:
+    """The announcement topic of service / action ``name`` as ``node`` resolves it (its
+    namespace and remappings), so server and client agree on it."""
+    return node.resolve_topic_name(name).rstrip("/") + "/_alive"
+
+
+def instance_id() -> str:
+    """This process: host, pid and start time (a restarted node gets a new one)."""
+    return f"{socket.gethostname()}:{os.getpid()}:{time.time_ns()}"
+
+
+def announce(node: Node, names: Sequence[str]) -> list[Publisher]:
+    """Announce that this process serves ``names`` (services / actions of ``node``)."""
+    msg = String(data=instance_id())
+    pubs = []
+    for name in names:
+        pub = node.create_publisher(String, alive_topic(node, name), ALIVE_QOS)
+        pub.publish(msg)
+        pubs.append(pub)
+    return pubs
+
+
+class PeerWatch:
+    """The instance serving ``name`` as the announcements show it, and whether it lives."""
+
+    def __init__(self, node: Node, name: str, server: str, callback_group=None) -> None:
+        """``server`` names the serving node in messages (e.g. ``inference_node``)."""
+        self.name, self.server = name, server
+        self._lock = threading.Lock()
+        self._instance: str | None = None
+        self._lost = False  # the announcing writer's liveliness ran out, none came back
+        node.create_subscription(
+            String, alive_topic(node, name), self._on_instance, ALIVE_QOS,
+            event_callbacks=SubscriptionEventCallbacks(liveliness=self._on_liveliness),
+            callback_group=callback_group)
+
+    def _on_instance(self, msg: String) -> None:
+        with self._lock:
+            self._instance = msg.data
+
+    def _on_liveliness(self, info: QoSLivelinessChangedInfo) -> None:
+        with self._lock:
+            self._lost = info.alive_count == 0
+
+    def current(self) -> str | None:
+        """The serving instance now (None: none announced, or it died)."""
+        with self._lock:
+            return None if self._lost else self._instance
+
+    def check(self, pinned: str | None) -> str | None:
+        """Why the instance ``pinned`` (from :meth:`current`) cannot answer any more, or None:
+        it was replaced by another process (restarted), or it lost its liveliness (died)."""
+        with self._lock:
+            if pinned is None or self._instance is None:
+                return None
+            if self._instance != pinned:
+                return (f"{self.server} restarted (a new process serves {self.name}; what "
+                        "the old one held in memory and any request it was answering are "
+                        "lost)")
+            if self._lost:
+                return (f"{self.server} is gone (no sign of life on {self.name} for "
+                        f"{LEASE_S:.0f} s: did its process die?)")
+        return None
