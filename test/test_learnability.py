@@ -118,13 +118,19 @@ def test_pool_selections_pick_what_they_say():
     rng = np.random.default_rng(0)
     predicted = rng.random(200)
     success = rng.random(200) < 0.1
-    for sel in ("random", "oracle", "confident", "half_success"):
+    for sel in ("random", "oracle", "oracle_stratified", "confident", "half_success"):
         rows = select_pool(sel, 40, predicted, success, np.random.default_rng(1))
         assert len(np.unique(rows)) == 40 and np.all(np.diff(rows) > 0), sel
     conf = select_pool("confident", 40, predicted, success, rng)
     assert set(conf) == set(np.argsort(-predicted)[:40])  # no labels used
     wrong = np.abs(predicted - success)
     assert wrong[select_pool("oracle", 40, predicted, success, rng)].min() >= np.sort(wrong)[-40]
+    # the most wrong of each class, in the pool's class mix (oracle alone: all successes)
+    strat = select_pool("oracle_stratified", 40, predicted, success, rng)
+    k = int(round(40 * success.mean()))
+    assert success[strat].sum() == k
+    assert set(strat[success[strat]]) == set(np.flatnonzero(success)[
+        np.argsort(-wrong[success])[:k]])
     half = select_pool("half_success", 40, predicted, success, rng)
     assert success[half].sum() == 20  # the pool's rate is ~10 %
     few = select_pool("half_success", 100, predicted, success, rng)  # positives run short

@@ -388,6 +388,8 @@ def _add_learnability(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--selections", nargs="+", default=["random", "oracle"],
                    choices=list(LEARNABILITY_SELECTIONS),
                    help="random; oracle: the N the model gets most wrong (hindsight); "
+                        "oracle_stratified: the most wrong of each class in the pool's "
+                        "class mix (hindsight); "
                         "confident: the N it rates most likely to succeed (no labels); "
                         "half_success: random with half successes (hindsight); "
                         "unfamiliar: the N lowest similarities (no labels); unfamiliar_half: "

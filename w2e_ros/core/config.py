@@ -104,10 +104,12 @@ feature propagation, on cached set-abstraction levels | every weight."""
 SIMILARITY_UPDATES = ("finetune", "frozen")
 """Whether each fit also trains the similarity head on what was explored (the reference)
 or leaves it as calibrated."""
-LEARNABILITY_SELECTIONS = ("random", "oracle", "confident", "half_success", "unfamiliar",
-                           "unfamiliar_half", "unfamiliar_failure", "uncertain_failure")
+LEARNABILITY_SELECTIONS = ("random", "oracle", "oracle_stratified", "confident", "half_success",
+                           "unfamiliar", "unfamiliar_half", "unfamiliar_failure",
+                           "uncertain_failure")
 """``w2e learnability``: which N pool interactions to fine-tune on: random | the N the model
-gets most wrong (hindsight) | the N it rates most likely to succeed (no labels) | random with
+gets most wrong (hindsight) | the most wrong within each class, in the pool's class mix
+(hindsight) | the N it rates most likely to succeed (no labels) | random with
 half successes (hindsight) | the N least familiar (lowest similarity, no labels) | half of them
 least familiar, half random | the least familiar of the predicted failures (no labels) | the
 predicted failures closest to 0.5 (its control)."""

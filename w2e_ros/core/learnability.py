@@ -5,7 +5,10 @@ few-shot fine-tuning of ``finetune.py``) on N interactions drawn from a collecti
 EXPLORE instances of the novel categories, and scores the result on the held-out TEST
 interactions: F-score, AUROC, average precision. ``selection="random"`` draws the N
 uniformly; ``selection="oracle"`` takes the N the base model gets most wrong (hindsight
-labels), the most a selection rule could gain from the same pool. If the random curve does
+labels), the most a selection rule could gain from the same pool; it takes the model's missed
+successes first, so at small N it is all successes (one class). ``oracle_stratified`` takes the
+most wrong of each class in the pool's own class mix: the model's mistakes without a class
+shift, the bound a rule that finds mistakes (not successes) could reach. If the random curve does
 not rise with N, no exploration strategy can help and training must be fixed first.
 
 Two more selections ask WHY the oracle wins. ``confident`` takes the N the base model rates
@@ -108,6 +111,12 @@ def select_pool(selection: str, n: int, predicted: np.ndarray, success: np.ndarr
     elif selection in ("oracle", "confident"):  # most wrong / most likely first, ties random
         key = np.abs(predicted - ok) if selection == "oracle" else predicted
         rows = np.argsort(-(key + rng.random(len(ok)) * 1e-6))[:n]
+    elif selection == "oracle_stratified":  # the most wrong of each class, random's class mix
+        pos, neg = np.flatnonzero(ok), np.flatnonzero(~ok)
+        k = min(len(pos), max(int(round(n * len(pos) / len(ok))), n - len(neg)))
+        wrong = np.abs(predicted - ok) + rng.random(len(ok)) * 1e-6
+        rows = np.concatenate([pos[np.argsort(-wrong[pos])[:k]],
+                               neg[np.argsort(-wrong[neg])[:n - k]]])
     elif selection == "half_success":
         pos, neg = np.flatnonzero(ok), np.flatnonzero(~ok)
         k = min(len(pos), max(n // 2, n - len(neg)))  # half, unless one class runs short
