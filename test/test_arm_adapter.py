@@ -6,7 +6,8 @@ published.
 Live mode needs a joint trajectory controller; none runs here, so this process stands in for
 its two ends that the adapter touches: it publishes ``joint_states`` and, when a trajectory
 arrives on the controller topic, reports the arm at that trajectory's last point (the hand is
-not driven: ``gripper_action:=''``).
+not driven: ``gripper_action:=''``); or, standing in for contact, part of the way there and
+no farther; or it runs no controller at all.
 """
 
 from __future__ import annotations
@@ -63,7 +64,10 @@ def goal_of(action: Action) -> FollowWaypoints.Goal:
 class Robot:
     """The adapter process and, here, a client with the controller's two ends."""
 
-    def __init__(self, tmp, *params: str) -> None:
+    def __init__(self, tmp, *params: str, block_piece: int | None = None,
+                 controller: bool = True) -> None:
+        """``block_piece``: that trajectory (0: the first) takes the arm half way and stops
+        there, as a part that does not give stops it; ``controller``: False, none listens."""
         domain = pick_domain_id(salt=29)
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "w2e_ros.nodes.arm_adapter_node", "--ros-args",
@@ -77,8 +81,12 @@ class Robot:
         self.planned: list[JointTrajectory] = []
         self.paths: list[Path] = []
         self.q = kin.Q_READY.copy()
-        self.node.create_subscription(JointTrajectory, "panda_arm_controller/joint_trajectory",
-                                      self._on_command, 10)
+        self.block_piece = block_piece
+        self.blocked = False
+        if controller:
+            self.node.create_subscription(JointTrajectory,
+                                          "panda_arm_controller/joint_trajectory",
+                                          self._on_command, 10)
         self.node.create_subscription(JointTrajectory, "planned_trajectory",
                                       self.planned.append, LATCHED_QOS)
         self.node.create_subscription(Path, "planned_path", self.paths.append, LATCHED_QOS)
@@ -93,7 +101,11 @@ class Robot:
 
     def _on_command(self, msg: JointTrajectory) -> None:
         self.commanded.append(msg)
-        self.q = np.array(msg.points[-1].positions)  # the controller got there
+        end = np.array(msg.points[-1].positions)
+        if len(self.commanded) - 1 == self.block_piece:
+            self.q, self.blocked = self.q + 0.5 * (end - self.q), True  # stopped half way
+        elif not self.blocked:
+            self.q = end  # the controller got there
 
     def _publish_state(self) -> None:
         self.states.publish(JointState(name=list(kin.PANDA_JOINTS),
@@ -156,6 +168,41 @@ def test_live_mode_sends_the_panda_trajectory_in_pieces_and_refuses_the_unreacha
         assert not res.valid and not res.reached
         assert res.message.startswith("unreachable") and "reach" in res.message
         assert len(robot.commanded) == n  # nothing moved
+    finally:
+        robot.close()
+
+
+def test_an_arm_blocked_after_the_grasp_is_a_failed_trial_and_holds_where_it_stopped(tmp_path):
+    """Issue 28, defect 5: a blocked move was refused as "is ... a running joint trajectory
+    controller?" right after the controller had run the previous piece. The arm moved and
+    was stopped: a trial that failed (valid, not reached), the cause named, the arm held."""
+    robot = Robot(tmp_path, "dry_run:=false", "gripper_action:=''", "velocity_scale:=1.0",
+                  "cartesian_speed:=0.5", "settle_s:=5.0", block_piece=1)
+    try:
+        t0 = time.monotonic()
+        res = robot.follow(REACHABLE)
+        took = time.monotonic() - t0
+        print(f"\n[arm_adapter] blocked after {took:.1f} s: {res.message}")
+        assert res.valid and not res.reached, (res.message, robot.output())
+        assert res.message.startswith("blocked: the arm stopped after waypoint ")
+        assert "contact" in res.message and "controller" not in res.message
+        assert len(robot.commanded) == 3  # the pieces to the handle and back, then the hold
+        hold = robot.commanded[-1]
+        assert len(hold.points) == 1
+        np.testing.assert_allclose(hold.points[0].positions, robot.q, atol=1e-9)
+        assert took < 5.0  # seen when the arm stopped, not settle_s after the plan's end
+    finally:
+        robot.close()
+
+
+def test_an_arm_that_never_moves_is_refused_naming_the_missing_controller(tmp_path):
+    robot = Robot(tmp_path, "dry_run:=false", "gripper_action:=''", "velocity_scale:=1.0",
+                  "cartesian_speed:=0.5", "settle_s:=0.5", controller=False)
+    try:
+        res = robot.follow(REACHABLE)
+        assert not res.valid and not res.reached, (res.message, robot.output())
+        assert res.message.startswith("the arm did not move on joint_states")
+        assert "running joint trajectory controller? (nothing subscribes to it)" in res.message
     finally:
         robot.close()
 

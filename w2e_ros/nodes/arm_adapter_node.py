@@ -52,6 +52,11 @@ from w2e_ros.ros.waypoints import GRIPPER_CLOSE, GRIPPER_KEEP, GRIPPER_OPEN
 
 CONTROLLER_TOPIC = "panda_arm_controller/joint_trajectory"  # relative: remap for another
 FINGER_MOTION_S = 0.5  # s a gripper_topic command takes (the Panda hand: 4 cm at ~0.1 m/s)
+STALL_S = 0.5  # s without joint motion (behind the plan) that counts as stopped
+STALL_MOTION = 0.002  # rad: largest joint motion over STALL_S of an arm that stopped
+NOT_MOVED = 0.01  # rad: an arm that moved less did not run the trajectory at all
+HOLD_S = 0.1  # s: time_from_start of the hold command sent after a blocked piece
+BLOCKED = "blocked"  # the kind of failure that is a trial (valid, not reached)
 
 
 @dataclass
@@ -115,6 +120,7 @@ class ArmAdapterNode(Node):
         self.joint_names = tuple(f"{s.joint_prefix}_joint{i}" for i in range(1, 8))
         self.finger_names = tuple(f"{s.joint_prefix}_finger_joint{i}" for i in (1, 2))
         self._state: np.ndarray | None = None  # latest joint positions (joint_names order)
+        self._state_count = 0  # joint_states messages received (a stale state is told apart)
         self._fingers: np.ndarray | None = None  # latest finger positions (gripper_topic)
         self._state_cv = threading.Condition()
         self._last_end: np.ndarray | None = None  # dry run: where the last plan left the arm
@@ -158,6 +164,7 @@ class ArmAdapterNode(Node):
         if all(n in pos for n in self.joint_names):
             with self._state_cv:
                 self._state = np.array([pos[n] for n in self.joint_names])
+                self._state_count += 1
                 if all(n in pos for n in self.finger_names):
                     self._fingers = np.array([pos[n] for n in self.finger_names])
                 self._state_cv.notify_all()
@@ -222,34 +229,29 @@ class ArmAdapterNode(Node):
     def _run(self, goal_handle, goal, plan: kin.JointPlan, acts: list[int], res, refuse,
              summary: str) -> FollowWaypoints.Result:
         """Live: the gripper's start state, then each piece to the controller and the
-        gripper's command at its end; every piece checked on joint_states."""
+        gripper's command at its end; every piece checked on joint_states.
+
+        A piece the arm does not finish is told apart by what joint_states show: no
+        joint_states during it, or an arm that did not move (no controller ran it): refused,
+        nothing was tried; an arm that moved and was stopped or held back short of the plan
+        (contact: a part that does not give, an obstacle, the joint torques): the trial ran and
+        failed, so it is valid and not reached, the arm is told to hold where it is, and the
+        executor judges what moved (a blocked push is a failed trial, not a refused one)."""
         n = len(goal.waypoints)
         why = self._grip(goal.initial_gripper)
         if why:
             return refuse(why)
         for first, last in plan.split(acts):
-            self.controller_pub.publish(self._trajectory_msg(plan, first, last))
-            start = time.monotonic()
-            for i in range(first + 1, last + 1):  # feedback as the waypoints are passed
-                k = int(plan.waypoint[i])
-                if k >= 0:
-                    time.sleep(max(0.0, plan.times[i] - plan.times[first]
-                                   - (time.monotonic() - start)))
-                    goal_handle.publish_feedback(FollowWaypoints.Feedback(
-                        waypoint=k, num_waypoints=n))
-            deadline = start + plan.times[last] - plan.times[first] + self.settings.settle_s
-            err = np.inf
-            while True:
-                q = self._joints(0.0)
-                err = np.inf if q is None else float(np.abs(q - plan.positions[last]).max())
-                if err <= self.settings.goal_tolerance or time.monotonic() > deadline:
-                    break
-                time.sleep(0.02)
-            if err > self.settings.goal_tolerance:
-                return refuse(f"the arm did not reach point {last} of the trajectory (joint "
-                              f"error {err:.3f} rad on joint_states after "
-                              f"{deadline - start:.1f} s): is {CONTROLLER_TOPIC} a running "
-                              "joint trajectory controller?")
+            failure = self._follow_piece(goal_handle, plan, first, last, n)
+            if failure is not None:
+                kind, why = failure
+                if kind != BLOCKED:
+                    return refuse(why)
+                self._hold()
+                self.get_logger().warning(f"trajectory not finished: {why}")
+                res.valid, res.reached, res.message = True, False, why
+                goal_handle.succeed()
+                return res
             k = int(plan.waypoint[last])
             if k >= 0 and goal.gripper[k] != GRIPPER_KEEP:
                 why = self._grip(goal.gripper[k])
@@ -261,6 +263,107 @@ class ArmAdapterNode(Node):
         self.get_logger().info(f"trajectory executed ({summary})")
         goal_handle.succeed()
         return res
+
+    def _follow_piece(self, goal_handle, plan: kin.JointPlan, first: int, last: int,
+                      n: int) -> tuple[str, str] | None:
+        """Send points ``first..last`` and watch joint_states until the arm is within
+        goal_tolerance of the last one (None), or (kind, why) once it cannot be: stopped
+        short of the plan for ``STALL_S``, or not there ``settle_s`` after the plan's end."""
+        s = self.settings
+        q0 = self._joints(0.0)
+        seen = self._state_count
+        self.controller_pub.publish(self._trajectory_msg(plan, first, last))
+        start = time.monotonic()
+        duration = float(plan.times[last] - plan.times[first])
+        deadline = start + duration + s.settle_s
+        times = plan.times[first:last + 1] - plan.times[first]
+        target = plan.positions[last]
+        passed = first  # feedback as the planned times of the waypoints pass
+        history: list[tuple[float, np.ndarray]] = []  # (t, joints) seen during the piece
+        while True:
+            now = time.monotonic()
+            t = now - start
+            while passed < last and times[passed + 1 - first] <= t:
+                passed += 1
+                k = int(plan.waypoint[passed])
+                if k >= 0:
+                    goal_handle.publish_feedback(FollowWaypoints.Feedback(
+                        waypoint=k, num_waypoints=n))
+            q = self._joints(0.0)
+            if q is not None and self._state_count != seen:  # a new joint_states message
+                seen = self._state_count
+                history.append((t, q))
+                if t >= duration and np.abs(q - target).max() <= s.goal_tolerance:
+                    return None
+                stalled = self._stalled(history, t)
+                # where the plan has the arm now: behind it and still for STALL_S is stopped
+                planned = np.array([np.interp(t, times, plan.positions[first:last + 1, j])
+                                    for j in range(q.size)])
+                if stalled and min(np.abs(q - planned).max(),
+                                   np.abs(q - target).max()) > s.goal_tolerance:
+                    return self._diagnose(plan, first, last, q0, history, t, "stopped")
+            if now > deadline:
+                if not history or t - history[-1][0] > STALL_S:
+                    last_seen = (f"the last {t - history[-1][0]:.1f} s" if history
+                                 else f"{t:.1f} s")
+                    return ("joint_states", f"no joint_states with {', '.join(self.joint_names)}"
+                            f" for {last_seen} while the arm ran points {first}..{last} of "
+                            "the trajectory: is the joint_state_broadcaster running?")
+                return self._diagnose(plan, first, last, q0, history, t, "late")
+            time.sleep(0.02)
+
+    @staticmethod
+    def _stalled(history: list[tuple[float, np.ndarray]], t: float) -> bool:
+        """The joints moved less than STALL_MOTION over the last STALL_S."""
+        if not history or history[0][0] > t - STALL_S:
+            return False
+        recent = np.array([q for tq, q in history if tq >= t - STALL_S])
+        if len(recent) < 2:  # joint_states paused: no judgement from them
+            return False
+        return float((recent.max(0) - recent.min(0)).max()) < STALL_MOTION
+
+    def _diagnose(self, plan: kin.JointPlan, first: int, last: int, q0: np.ndarray | None,
+                  history: list[tuple[float, np.ndarray]], t: float,
+                  how: str) -> tuple[str, str]:
+        """Why the arm is not at point ``last``: (kind, one line naming the cause)."""
+        q = history[-1][1]
+        q0 = history[0][1] if q0 is None else q0
+        target = plan.positions[last]
+        planned_move = float(np.abs(target - q0).max())
+        moved = float(np.abs(q - q0).max())
+        err = np.abs(q - target)
+        j = int(np.argmax(err))
+        if moved < max(NOT_MOVED, 0.1 * planned_move):
+            subs = self.controller_pub.get_subscription_count()
+            listener = ("nothing subscribes to it" if subs == 0 else
+                        f"{subs} subscriber(s), none moved the arm")
+            return ("controller", f"the arm did not move on joint_states ({moved:.3f} rad of "
+                    f"the {planned_move:.3f} rad planned to point {last} in {t:.1f} s): is "
+                    f"{CONTROLLER_TOPIC} a running joint trajectory controller? ({listener})")
+        # the waypoint the arm got past last: where along the primitive it stopped
+        d = np.abs(plan.positions[first:last + 1] - q).max(axis=1)
+        near = first + int(np.argmin(d))
+        k = [int(w) for w in plan.waypoint[first:near + 1] if w >= 0]
+        where = f"after waypoint {k[-1]}" if k else "before its first waypoint"
+        state = ("stopped" if how == "stopped" else "was still short of the plan's end "
+                 f"{self.settings.settle_s:.1f} s after it")
+        return (BLOCKED, f"blocked: the arm {state} {where} of the primitive, "
+                f"{moved / max(planned_move, 1e-9):.0%} of the way to point {last} "
+                f"(largest joint error {err[j]:.3f} rad on {self.joint_names[j]}, tolerance "
+                f"{self.settings.goal_tolerance:.3f}): contact held it back (a part that does "
+                "not give, an obstacle, the joint torques); the arm holds where it is")
+
+    def _hold(self) -> None:
+        """Tell the controller to keep the arm where it is (a new trajectory replaces the one
+        it is pressing on with)."""
+        q = self._joints(0.0)
+        if q is None:
+            return
+        msg = JointTrajectory(joint_names=list(self.joint_names))
+        msg.points.append(JointTrajectoryPoint(
+            positions=[float(x) for x in q],
+            time_from_start=DurationMsg(nanosec=int(HOLD_S * 1e9))))
+        self.controller_pub.publish(msg)
 
     def _grip(self, command: int) -> str:
         """Drive the hand (open / close); the reason on failure, '' when done or no hand."""

@@ -238,6 +238,9 @@ class GripperExecutorNode(Node):
                 trial = replace(trial, valid=False, success=False, reason=judged)
             else:
                 trial = apply_cloud_outcome(trial, judged)
+                if res.message and not res.reached and not trial.success:
+                    # what stopped the robot (the arm adapter: "blocked: ...") stays said
+                    trial = replace(trial, reason=f"{trial.reason}; robot: {res.message}")
                 note = (f" [clouds: motion {judged.motion:.4f} m (threshold "
                         f"{judged.threshold:.4f}), cosine {judged.cosine:+.2f}"
                         + (f"; joints say success={judged_by_joints}"
