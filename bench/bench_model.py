@@ -1,13 +1,16 @@
 """Latency and throughput of the model vs the naive way, measured in one run (DESIGN §6).
 
 * Full map: affordance + similarity for all N points x K actions. Ours: one encoder pass and
-  the split heads. Unsplit: one encoder pass, then the heads on N*K concatenated
+  the split heads, their (point, action) rows in cache-sized chunks. Unchunked: the same
+  heads on all N*K rows at once (the map before chunking; also timed without the encoder).
+  Unsplit: one encoder pass, then the heads on N*K concatenated
   [feature, action] rows. Naive: one encoder pass per query (timed on a few queries and
   extrapolated to N*K).
 * Training: interactions per second. Ours: a few clouds x many interactions per step (grouped
   by observation). Naive: the reference layout, one cloud per interaction (batch of 32).
 
 Usage: python bench/bench_model.py [--points 2048 10000] [--dirs 64] [--threads 2] [--quick]
+       [--map-only]   (the reference's map: --points 10000 --dirs 32 --map-only)
 """
 
 from __future__ import annotations
@@ -35,6 +38,19 @@ def _time(fn, repeat: int) -> float:
     return float(np.median(ts))
 
 
+def _time_pair(a, b, repeat: int) -> tuple[float, float]:
+    """Median times of ``a`` and ``b`` run alternately, so a busy machine's load hits both
+    alike."""
+    a(), b()  # warm-up
+    ta, tb = [], []
+    for _ in range(repeat):
+        for fn, ts in ((a, ta), (b, tb)):
+            t = time.perf_counter()
+            fn()
+            ts.append(time.perf_counter() - t)
+    return float(np.median(ta)), float(np.median(tb))
+
+
 def _cloud(B: int, N: int, seed: int = 0) -> torch.Tensor:
     g = torch.Generator().manual_seed(seed)
     x = torch.rand(B, N, 3, generator=g) - 0.5
@@ -49,6 +65,25 @@ def bench_map(model: W2EModel, N: int, K: int, repeat: int, naive_queries: int) 
     @torch.no_grad()
     def ours():
         model.score_map(model.encode(x), actions)
+
+    def unchunked_heads(feats: torch.Tensor) -> None:  # the heads before chunking:
+        for head in (model.aff_head, model.sim_head):  # each (N*K, H) intermediate whole
+            head._rest(head.point_fc(feats).unsqueeze(2) + head.action_fc(actions))
+
+    @torch.no_grad()
+    def ours_unchunked():
+        unchunked_heads(model.encode(x))
+
+    with torch.no_grad():
+        feats = model.encode(x)
+
+    @torch.no_grad()
+    def heads():
+        model.score_map(feats, actions)
+
+    @torch.no_grad()
+    def unchunked():
+        unchunked_heads(feats)
 
     @torch.no_grad()
     def unsplit():
@@ -65,11 +100,16 @@ def bench_map(model: W2EModel, N: int, K: int, repeat: int, naive_queries: int) 
             feats = model.encode(x)
             model.heads(feats[0, q], actions[0, q, 0])
 
-    t_ours = _time(ours, repeat)
+    t_ours, t_ours_unchunked = _time_pair(ours, ours_unchunked, repeat)
+    t_heads, t_unchunked = _time_pair(heads, unchunked, repeat)
     t_unsplit = _time(unsplit, max(1, repeat // 2))
     t_naive_q = _time(naive, 1) / naive_queries
     t_enc = _time(lambda: model.encode(x).detach(), repeat)
     return {"points": N, "dirs": K, "pairs": N * K, "encoder_s": t_enc, "ours_s": t_ours,
+            "ours_unchunked_s": t_ours_unchunked,
+            "ratio_unchunked_over_ours": t_ours_unchunked / t_ours,
+            "heads_s": t_heads, "heads_unchunked_s": t_unchunked,
+            "ratio_unchunked_over_heads": t_unchunked / t_heads,
             "unsplit_s": t_unsplit, "naive_per_query_s": t_naive_q,
             "naive_full_map_s": t_naive_q * N * K,
             "ratio_unsplit_over_ours": t_unsplit / t_ours,
@@ -121,6 +161,7 @@ def main() -> None:
     ap.add_argument("--naive-batch", type=int, default=32)
     ap.add_argument("--first-level", type=int, nargs="+", default=[512],
                     help="first set-abstraction centroids to compare (e.g. 512 1024)")
+    ap.add_argument("--map-only", action="store_true", help="time the map, not training")
     ap.add_argument("--quick", action="store_true", help="fewer repeats and a smaller naive batch")
     ap.add_argument("--json", default=None)
     a = ap.parse_args()
@@ -139,11 +180,17 @@ def main() -> None:
             m["sa_npoint"] = list(npoint)
             results.append({"map": m})
             print(f"[map  ] SA {npoint} N={N:5d} K={a.dirs}: {m['pairs']} pairs; encoder "
-                  f"{1e3 * m['encoder_s']:.0f} ms; full map ours {1e3 * m['ours_s']:.0f} ms, "
-                  f"unsplit heads {1e3 * m['unsplit_s']:.0f} ms "
+                  f"{1e3 * m['encoder_s']:.0f} ms; full map ours {1e3 * m['ours_s']:.0f} ms "
+                  f"vs {1e3 * m['ours_unchunked_s']:.0f} ms unchunked "
+                  f"(x{m['ratio_unchunked_over_ours']:.2f}); the heads alone "
+                  f"{1e3 * m['heads_s']:.0f} ms vs {1e3 * m['heads_unchunked_s']:.0f} ms "
+                  f"(x{m['ratio_unchunked_over_heads']:.2f}); unsplit heads "
+                  f"{1e3 * m['unsplit_s']:.0f} ms "
                   f"(x{m['ratio_unsplit_over_ours']:.1f}), naive "
                   f"{m['naive_per_query_s']:.3f} s/query -> {m['naive_full_map_s'] / 3600:.1f} h "
                   f"(x{m['ratio_naive_over_ours']:.0f})")
+            if a.map_only:
+                continue
             t = bench_train(cfg, N, a.clouds, a.per_cloud, a.naive_batch, a.repeat)
             t["sa_npoint"] = list(npoint)
             results.append({"train": t})

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from w2e_ros.core import model as model_module
 from w2e_ros.core.config import ModelConfig
 from w2e_ros.core.model import W2EModel, load_model, save_model
 from w2e_ros.core.pointnet2_geometry import (
@@ -121,6 +122,45 @@ def test_split_head_map_equals_paired_queries(cfg):
         a1, _ = model.score_map(feats, shared)
         a2, _ = model.score_map(feats, shared.expand(2, 256, 5, 6))
         torch.testing.assert_close(a1, a2)
+
+
+def _unchunked_map(head, feats: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+    """The map before chunking: every (point, action) row of each layer at once."""
+    return head._rest(head.point_fc(feats).unsqueeze(2) + head.action_fc(actions))
+
+
+@pytest.mark.parametrize("cfg", VARIANTS[:2])
+@pytest.mark.parametrize("chunk_bytes", [None, 11000])  # the default; 3 points, ragged
+def test_chunked_map_equals_the_whole_map(cfg, chunk_bytes, monkeypatch):
+    if chunk_bytes is not None:
+        monkeypatch.setattr(model_module, "MAP_CHUNK_BYTES", chunk_bytes)
+    torch.manual_seed(3)
+    model = W2EModel(cfg).eval()
+    g = torch.Generator().manual_seed(4)
+    with torch.no_grad():
+        feats = model.encode(_cloud(2, 256, seed=5))
+        for actions in (torch.randn(2, 256, 7, 6, generator=g), torch.randn(7, 6, generator=g)):
+            aff, sim = model.score_map(feats, actions)
+            torch.testing.assert_close(aff, _unchunked_map(model.aff_head, feats, actions),
+                                       atol=1e-5, rtol=1e-5)
+            torch.testing.assert_close(
+                sim, torch.sigmoid(_unchunked_map(model.sim_head, feats, actions)),
+                atol=1e-6, rtol=1e-5)
+    # the reference's size: 10,000 points x 32 directions, many default-size chunks
+    model = W2EModel(ModelConfig(num_points=10000)).eval()
+    with torch.no_grad():
+        feats = torch.randn(1, 10000, model.cfg.feat_dim, generator=g)
+        actions = torch.randn(1, 10000, 32, 6, generator=g)
+        torch.testing.assert_close(model.aff_head.map(feats, actions),
+                                   _unchunked_map(model.aff_head, feats, actions),
+                                   atol=1e-5, rtol=1e-5)
+
+
+def test_map_of_no_points_is_empty():
+    model = W2EModel(SMALL).eval()
+    with torch.no_grad():
+        aff, sim = model.score_map(torch.zeros(1, 0, SMALL.feat_dim), torch.zeros(1, 0, 4, 6))
+    assert aff.shape == sim.shape == (1, 0, 4)
 
 
 def test_forward_reads_features_at_each_interactions_point():
