@@ -59,9 +59,6 @@ def _nodes(context, *args, **kwargs):
     shared = params.get("/**", {}).get("ros__parameters", {})
     bridge = dict(shared, **params.get("sim_bridge", {}).get("ros__parameters", {}))
     sim_panda = use_sim and bridge.get("robot", "flying") == "panda"
-    if sim_panda and not bridge.get("arm_base_pose"):
-        raise RuntimeError("sim_bridge robot: panda needs sim_bridge arm_base_pose (the arm "
-                           "adapter plans from the base the simulated arm stands on)")
     actions = []
     for name, (executable, node_name) in NODES.items():
         if wanted and name not in wanted:
@@ -73,7 +70,8 @@ def _nodes(context, *args, **kwargs):
         section = dict(shared)
         section.update(params.get(node_name, {}).get("ros__parameters", {}))
         if name == "arm_adapter" and sim_panda:  # live on the simulated arm (as w2e bringup)
-            section.update(dry_run=False, gripper_action="", base_pose=bridge["arm_base_pose"],
+            # its arm_base_pose is the bridge's: the file's /** section sets both
+            section.update(dry_run=False, gripper_action="",
                            gripper_topic="panda_hand_controller/joint_trajectory")
         actions.append(Node(
             package="w2e_ros",

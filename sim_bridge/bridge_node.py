@@ -102,9 +102,8 @@ class BridgeSettings:
         "driven by joint trajectories on panda_arm_controller/joint_trajectory and "
         "panda_hand_controller/joint_trajectory, joint_states published; run the arm adapter "
         "live for follow_waypoints)")
-    arm_base_pose: list[float] = param(
-        [], "robot panda: pose of panda_link0 in frame_id, x y z qx qy qz qw ([]: 0.95 m in "
-        "front (+x) of the first object's centre, 0.3 m below it, facing it)")
+    arm_base_pose: list[float] = param(list(kin.DEFAULT_BASE_POSE),
+                                       f"robot panda: {kin.BASE_POSE_DESCRIPTION}")
     joint_state_rate_hz: float = param(50.0, "robot panda: joint_states rate (Hz)", min=1.0)
 
 
@@ -130,6 +129,11 @@ class SimBridgeNode(Node):
             check_backend(self.settings.camera_backend, self.settings.camera_device)
         except ValueError as exc:
             raise ParameterError(self.get_fully_qualified_name(), str(exc)) from None
+        try:
+            self.arm_base()
+        except ValueError as err:
+            raise ParameterError(self.get_fully_qualified_name(),
+                                 f"parameter 'arm_base_pose': {err}") from None
         self.get_logger().info(f"settings: {describe(self.settings)}")
         self._lock = threading.Lock()  # guards the scene: camera vs. trials vs. loading
         self._objects: list[_SceneObject] = []
@@ -362,14 +366,9 @@ class SimBridgeNode(Node):
 
     # -- the simulated Panda (robot: panda) ------------------------------------------------
     def arm_base(self) -> np.ndarray:
-        """(4, 4) pose of panda_link0: the parameter, or in front of the first object."""
-        if self.settings.arm_base_pose:
-            return kin.pose_matrix(self.settings.arm_base_pose)
-        from sim_bridge.panda import base_in_front
-
-        o = self._objects[0]
-        centre = transform_points(o.pose, o.model.bounds()).mean(axis=0)
-        return kin.pose_matrix(base_in_front(centre))
+        """(4, 4) pose of panda_link0: the stack's ``arm_base_pose``, fixed in the world
+        whatever the scene holds (the planner and the arm adapter read the same value)."""
+        return kin.pose_matrix(self.settings.arm_base_pose or None)
 
     def _rebuild_arm(self) -> None:
         """A new physics scene of the objects and the arm (the arm keeps its joints); called
@@ -389,8 +388,7 @@ class SimBridgeNode(Node):
             pose = [*base[:3, 3], *Rotation.from_matrix(base[:3, :3]).as_quat()]
             self.get_logger().info(
                 "Panda base (panda_link0) at x y z qx qy qz qw = "
-                f"{[round(float(v), 4) for v in pose]}: the planner's arm_base_pose and the "
-                "arm adapter's base_pose must say the same")
+                f"{[round(float(v), 4) for v in pose]} (arm_base_pose)")
 
     def _trajectory(self, msg: JointTrajectory, names: tuple[str, ...]
                     ) -> tuple[np.ndarray, np.ndarray]:

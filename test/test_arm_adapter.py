@@ -53,6 +53,9 @@ FAR = Action(np.array([1.6, 0.0, 0.5]), np.array([1.0, 0.0, 0.0]), np.array([0.0
              "pull")
 
 
+BASE_AT_ORIGIN = "arm_base_pose:=[0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]"  # the actions' frame
+
+
 def goal_of(action: Action) -> FollowWaypoints.Goal:
     plan = plan_waypoints(action)
     goal = FollowWaypoints.Goal(waypoints=[to_pose(p, plan.rotation) for p in plan.positions],
@@ -71,7 +74,7 @@ class Robot:
         domain = pick_domain_id(salt=29)
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "w2e_ros.nodes.arm_adapter_node", "--ros-args",
-             *[a for p in params for a in ("-p", p)]],
+             *[a for p in (BASE_AT_ORIGIN, *params) for a in ("-p", p)]],
             env=ros_env(domain_id=domain, log_dir=tmp / "ros_log"), start_new_session=True,
             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         self.ctx = rclpy.Context()

@@ -173,14 +173,20 @@ def _running(pid: int) -> bool:
         return False
 
 
-def _panda_params(tmp_path: Path, base: list[float] | None, outcome: str = "clouds") -> Path:
-    """config/w2e_stack.yaml with the bridge's simulated Panda switched on."""
+def _panda_params(tmp_path: Path, base: list[float] | None, outcome: str = "clouds",
+                  bridge_base: list[float] | None = None) -> Path:
+    """config/w2e_stack.yaml with the bridge's simulated Panda switched on; ``base`` for the
+    whole stack (its /** section), ``bridge_base`` for the bridge alone."""
     import yaml
 
     from w2e_ros.bringup import default_params
 
     data = yaml.safe_load(default_params().read_text())
-    data["sim_bridge"]["ros__parameters"].update(robot="panda", arm_base_pose=base or [])
+    data["sim_bridge"]["ros__parameters"]["robot"] = "panda"
+    if base is not None:
+        data["/**"]["ros__parameters"]["arm_base_pose"] = base
+    if bridge_base is not None:
+        data["sim_bridge"]["ros__parameters"]["arm_base_pose"] = bridge_base
     data["executor"]["ros__parameters"]["outcome_source"] = outcome
     path = tmp_path / "panda.yaml"
     path.write_text(yaml.safe_dump(data))
@@ -191,7 +197,7 @@ PANDA_BASE = [0.95, 0.0, 0.1, 0.0, 0.0, 1.0, 0.0]
 
 
 def test_robot_panda_brings_up_the_arm_adapter_live_on_the_bridges_base(tmp_path):
-    from w2e_ros.bringup import Stack
+    from w2e_ros.bringup import Stack, node_parameters
 
     flying = Stack(output=None)
     assert "arm_adapter" not in [s.name for s in flying.specs]
@@ -205,20 +211,25 @@ def test_robot_panda_brings_up_the_arm_adapter_live_on_the_bridges_base(tmp_path
     assert adapter.actions == ("follow_waypoints",)
     cmd = " ".join(stack.command(adapter, stack.params))
     assert "dry_run:=false" in cmd and "gripper_topic:=panda_hand_controller/joint_trajectory" \
-        in cmd and "base_pose:=[0.95, 0.0, 0.1, 0.0, 0.0, 1.0, 0.0]" in cmd
+        in cmd
+    # the base from the file's one /** entry, the same for the bridge, adapter and planner
+    for node in ("sim_bridge", "arm_adapter", "planner_node"):
+        assert node_parameters(stack.params, node)["arm_base_pose"] == PANDA_BASE
 
 
 def test_robot_panda_without_what_it_needs_fails_at_once_naming_it(tmp_path):
     """The bring-up that hung 120 s ("nodes ['sim_bridge'] were not up") now says at once what
     the configuration lacks, as a user running ``w2e bringup`` sees it."""
     t0 = time.monotonic()
-    res = subprocess.run([W2E, "bringup", "--params", str(_panda_params(tmp_path, None, "joints")),
+    params = _panda_params(tmp_path, None, "joints", bridge_base=PANDA_BASE)
+    res = subprocess.run([W2E, "bringup", "--params", str(params),
                           "--domain-id", str(pick_domain_id(71))], env=ros_env(),
                          capture_output=True, text=True, timeout=60)
     assert res.returncode == 1, res.stdout + res.stderr
     assert time.monotonic() - t0 < 30
     assert "Traceback" not in res.stderr
-    assert "sim_bridge robot: panda needs sim_bridge arm_base_pose" in res.stderr, res.stderr
+    assert "sim_bridge robot: panda needs one arm_base_pose" in res.stderr, res.stderr
+    assert f"sim_bridge {PANDA_BASE}, arm_adapter [0.95, 0.0, 0.0" in res.stderr, res.stderr
     assert "executor outcome_source: clouds" in res.stderr, res.stderr
     assert "is up" not in res.stdout  # nothing was started
 

@@ -185,7 +185,7 @@ def test_pull_through_the_stack_with_the_simulated_panda_opens_a_drawer(tmp_path
     adapter_log = tmp_path / "arm_adapter.log"
     adapter = subprocess.Popen(
         [sys.executable, "-m", "w2e_ros.nodes.arm_adapter_node", "--ros-args",
-         "-p", "dry_run:=false", "-p", f"base_pose:={base_arg}", "-p", "gripper_action:=''",
+         "-p", "dry_run:=false", "-p", f"arm_base_pose:={base_arg}", "-p", "gripper_action:=''",
          "-p", "gripper_topic:=panda_hand_controller/joint_trajectory"],
         env=env, start_new_session=True, stdout=adapter_log.open("w"),
         stderr=subprocess.STDOUT)

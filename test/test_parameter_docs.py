@@ -166,6 +166,12 @@ def test_parameter_files_set_declared_parameters_and_the_readme_states_other_val
     files = _stack_yaml()
     assert files, "no ros__parameters file under config/"
     for fname, sections in files.items():
+        shared = sections.pop("/**", {})  # set for every node: checked as each declaring one's
+        for key, value in shared.items():
+            users = [n for n, ds in declared.items() if key in {d.name for d in ds}]
+            assert users, f"{fname}: /**.{key} is declared by no node"
+            for node in users:
+                sections[node] = {key: value, **sections.get(node, {})}
         for node, params in sections.items():
             assert node in declared, f"{fname}: section {node!r} is not a node of the stack"
             by_name = {d.name: d for d in declared[node]}

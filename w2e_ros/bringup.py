@@ -95,9 +95,9 @@ def node_parameters(params: Path, node: str, namespace: str = "",
     data = yaml.safe_load(Path(params).read_text()) or {}
     ns = namespace.strip("/")
     out: dict = {}
-    for key in ("/**", node, f"/{node}", f"/{ns}/{node}" if ns else None):
-        section = data.get(key) if key else None
-        if isinstance(section, dict):
+    keys = {"/**", node, f"/{node}"} | ({f"/{ns}/{node}"} if ns else set())
+    for key, section in data.items():  # rcl applies the sections in the file's order
+        if key in keys and isinstance(section, dict):
             out.update(section.get("ros__parameters") or {})
     rest = list(args or [])
     for flag, value in zip(rest, rest[1:], strict=False):
@@ -248,13 +248,17 @@ class Stack:
         bridge's base pose, serves follow_waypoints; settings that cannot work with it fail
         here, before anything starts, all named at once (a bring-up that waited for a
         follow_waypoints nobody serves hung for its whole timeout)."""
-        bridge = self._params_of("sim_bridge")
+        from w2e_ros.core.kinematics import DEFAULT_BASE_POSE  # numpy, scipy: not at import
+
         missing = []
-        base = list(bridge.get("arm_base_pose") or [])
-        if "arm_adapter" in names and not base:
-            missing.append("sim_bridge arm_base_pose: the arm adapter plans from the same base "
-                           "pose as the simulated arm stands on ([] lets the bridge choose one "
-                           "at the first load, which the adapter cannot know)")
+        # one base for the simulated arm, the adapter's plans and the planner's reach check
+        bases = {node: [float(v) for v in self._params_of(node).get(
+                     "arm_base_pose", DEFAULT_BASE_POSE)]
+                 for node in ("sim_bridge", "arm_adapter", "planner") if node in names}
+        if len({tuple(b) for b in bases.values()}) > 1:
+            missing.append("one arm_base_pose (set it once, in the parameter file's /** "
+                           "section); got " + ", ".join(f"{NODES[n].node} {b}"
+                                                         for n, b in bases.items()))
         if "executor" in names and self._params_of("executor").get(
                 "outcome_source", "joints") != "clouds":
             missing.append("executor outcome_source: clouds (the arm adapter reports no object "
@@ -262,8 +266,7 @@ class Stack:
         if missing:
             raise StackError("sim_bridge robot: panda needs " + "; ".join(missing))
         if "arm_adapter" in names:
-            pose = "[" + ", ".join(repr(float(v)) for v in base) + "]"
-            self.extra_args["arm_adapter"] = [*SIM_PANDA_ADAPTER_ARGS, "-p", f"base_pose:={pose}",
+            self.extra_args["arm_adapter"] = [*SIM_PANDA_ADAPTER_ARGS,
                                               *self.extra_args.get("arm_adapter", [])]
         elif "executor" in names:
             self.notes.append("sim_bridge robot: panda serves no follow_waypoints: the executor "

@@ -83,6 +83,20 @@ DEFAULT_LIMITS = ArmLimits()
 DEFAULT_BOX = WorkspaceBox()
 
 
+DEFAULT_BASE_POSE: tuple[float, ...] = (0.95, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0)
+"""The stack's one Panda base (panda_link0) in its world frame, x y z qx qy qz qw: 0.95 m in
+front (+x) of the objects (the bridge stands them on the table, z = 0, facing +x, a row
+centred on y = 0), on the table's plane, turned half a turn about z to face them. The default
+of ``arm_base_pose`` in the bridge, the planner and the arm adapter, and the value
+config/w2e_stack.yaml sets for all three at once (its ``/**`` section); fixed in the world,
+as a real arm's base is, whichever object is loaded first."""
+
+BASE_POSE_DESCRIPTION = (
+    "pose of the Panda's base (panda_link0) in frame_id, x y z qx qy qz qw ([]: the origin); "
+    "one value for sim_bridge, planner_node and arm_adapter: config/w2e_stack.yaml sets it "
+    "once, in its /** section")
+
+
 def pose_matrix(pose: Sequence[float] | np.ndarray | None) -> np.ndarray:
     """(4, 4) from ``x y z qx qy qz qw`` (a static transform publisher's order), a (4, 4)
     passed through, or None / empty (identity)."""

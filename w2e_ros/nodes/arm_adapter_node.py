@@ -66,8 +66,7 @@ class ArmAdapterSettings:
     frame_id: str = param("world", "frame of the waypoints (the stack's fixed frame)")
     dry_run: bool = param(True, "only plan and publish planned_path / planned_trajectory for "
                           "RViz; nothing is sent to the controller or the gripper")
-    base_pose: list[float] = param([], "pose of the arm's base (panda_link0) in frame_id, x y z "
-                                   "qx qy qz qw ([]: the origin)")
+    arm_base_pose: list[float] = param(list(kin.DEFAULT_BASE_POSE), kin.BASE_POSE_DESCRIPTION)
     workspace_min: list[float] = param([-0.9, -0.9, -0.2], "low corner of the box the wrist "
                                        "must stay in (base frame, m)")
     workspace_max: list[float] = param([0.9, 0.9, 1.2], "high corner of the box the wrist must "
@@ -107,10 +106,10 @@ class ArmAdapterNode(Node):
         self.settings = s = declare_typed_parameters(self, ArmAdapterSettings)
         self.get_logger().info(f"settings: {describe(s)}")
         try:
-            self.base = kin.pose_matrix(s.base_pose or None)
+            self.base = kin.pose_matrix(s.arm_base_pose or None)
         except ValueError as err:
             raise ParameterError(self.get_fully_qualified_name(),
-                                 f"parameter 'base_pose': {err}") from None
+                                 f"parameter 'arm_base_pose': {err}") from None
         if len(s.workspace_min) != 3 or len(s.workspace_max) != 3:
             raise ParameterError(self.get_fully_qualified_name(),
                                  "parameters 'workspace_min' / 'workspace_max' are 3 numbers each")

@@ -60,6 +60,7 @@ from w2e_ros.core.categories import load_categories
 from w2e_ros.core.config import ExploreConfig
 from w2e_ros.core.explore import Candidates, Executed, StepRecord, explore
 from w2e_ros.core.feasibility import DEFAULT_CHECK, Arm, first_feasible
+from w2e_ros.core.kinematics import BASE_POSE_DESCRIPTION, DEFAULT_BASE_POSE
 from w2e_ros.core.primitives import PRIMITIVES, Action, TrialResult
 from w2e_ros.core.session_log import SessionRun, open_session
 from w2e_ros.core.sim_world import stable_seed
@@ -106,9 +107,8 @@ class PlannerSettings:
                      "every pose reachable: the paper's benchmark) or panda (a Franka Panda at "
                      "arm_base_pose: manipulate executes the best action the arm can follow, "
                      "explore drops the others; w2e_ros.core.kinematics)")
-    arm_base_pose: list[float] = param([], "arm panda: pose of the arm's base (panda_link0) "
-                                       "in frame_id of the clouds, x y z qx qy qz qw ([]: the "
-                                       "origin)")
+    arm_base_pose: list[float] = param(list(DEFAULT_BASE_POSE),
+                                       f"arm panda: {BASE_POSE_DESCRIPTION}")
     arm_workspace_min: list[float] = param([-0.9, -0.9, -0.2], "arm panda: low corner of the "
                                            "box the wrist must stay in (base frame, m)")
     arm_workspace_max: list[float] = param([0.9, 0.9, 1.2], "arm panda: high corner of the "
