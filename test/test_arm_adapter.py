@@ -187,7 +187,8 @@ def test_an_arm_blocked_after_the_grasp_is_a_failed_trial_and_holds_where_it_sto
         took = time.monotonic() - t0
         print(f"\n[arm_adapter] blocked after {took:.1f} s: {res.message}")
         assert res.valid and not res.reached, (res.message, robot.output())
-        assert res.message.startswith("blocked: the arm stopped after waypoint ")
+        assert res.message.startswith("blocked after waypoint ")
+        assert "of the primitive: the arm stopped, " in res.message
         assert "contact" in res.message and "controller" not in res.message
         assert len(robot.commanded) == 3  # the pieces to the handle and back, then the hold
         hold = robot.commanded[-1]

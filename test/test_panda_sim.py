@@ -275,7 +275,7 @@ def test_pull_through_the_stack_with_the_simulated_panda_opens_a_drawer(tmp_path
             print(f"[panda stack] push into the closed drawer in {time.monotonic() - t0:.1f} s: "
                   f"valid={outcome.valid} success={outcome.success} {outcome.reason}")
             assert outcome.valid and not outcome.success, outcome.reason
-            assert "robot: blocked: the arm" in outcome.reason, outcome.reason
+            assert "robot: blocked after waypoint" in outcome.reason, outcome.reason
             assert "joint trajectory controller" not in outcome.reason
             ex.shutdown()
             node.destroy_node()

@@ -344,9 +344,9 @@ class ArmAdapterNode(Node):
         near = first + int(np.argmin(d))
         k = [int(w) for w in plan.waypoint[first:near + 1] if w >= 0]
         where = f"after waypoint {k[-1]}" if k else "before its first waypoint"
-        state = ("stopped" if how == "stopped" else "was still short of the plan's end "
-                 f"{self.settings.settle_s:.1f} s after it")
-        return (BLOCKED, f"blocked: the arm {state} {where} of the primitive, "
+        state = ("stopped" if how == "stopped" else "was still short of the plan "
+                 f"{self.settings.settle_s:.1f} s after its end")
+        return (BLOCKED, f"blocked {where} of the primitive: the arm {state}, "
                 f"{moved / max(planned_move, 1e-9):.0%} of the way to point {last} "
                 f"(largest joint error {err[j]:.3f} rad on {self.joint_names[j]}, tolerance "
                 f"{self.settings.goal_tolerance:.3f}): contact held it back (a part that does "
