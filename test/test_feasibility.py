@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
 from w2e_ros.core import primitives
 from w2e_ros.core.feasibility import (
@@ -117,6 +118,110 @@ def test_many_candidates_at_once_match_one_at_a_time_in_any_frame():
     moved = approach_hits(cloud @ R.T + shift, cloud[idx] @ R.T + shift, up @ R.T, fwd @ R.T,
                           "pull")
     np.testing.assert_array_equal(moved, hits)
+
+
+def _numpy_hits(cloud, point, up, forward, primitive, check=None, chunk_pairs=1 << 22):
+    """The numpy check the torch one replaced (valid inputs only), for equality."""
+    check = check or ApproachCheck()
+    from w2e_ros.core.feasibility import PUSH_START
+
+    point, up, forward = (np.atleast_2d(np.asarray(a, np.float64)) for a in (point, up, forward))
+    up = up / np.linalg.norm(up, axis=1, keepdims=True)
+    fwd = forward - np.sum(forward * up, axis=1, keepdims=True) * up
+    fwd = fwd / np.linalg.norm(fwd, axis=1, keepdims=True)
+    R = np.stack([fwd, np.cross(up, fwd), up], axis=2)
+    path, opening = approach_path(primitive, check.standoff)
+    lo, hi = hand_boxes(opening)
+    lo, hi = lo - check.margin, hi + check.margin
+    ends = np.array([p for seg in path for p in seg])
+    blo, bhi = lo.min(0) + ends.min(0), hi.max(0) + ends.max(0)
+    cloud = np.asarray(cloud, np.float64)
+    centre = cloud.mean(axis=0)
+    pts = (cloud - centre).astype(np.float32)
+    offs = np.einsum("cij,ci->cj", R, point - PUSH_START * R[:, :, 2] - centre)
+    out = np.zeros(len(point), np.int64)
+    step = max(1, chunk_pairs // len(pts))
+    for s in range(0, len(point), step):
+        e = min(s + step, len(point))
+        x = pts @ R[s:e, :, 0].T.astype(np.float32) - offs[s:e, 0].astype(np.float32)
+        z = pts @ R[s:e, :, 2].T.astype(np.float32) - offs[s:e, 2].astype(np.float32)
+        n, c = np.nonzero((x >= blo[0]) & (x <= bhi[0]) & (z >= blo[2]) & (z <= bhi[2]))
+        y = np.einsum("ij,ij->i", pts[n], R[s + c, :, 1].astype(np.float32))
+        local = np.stack([x[n, c], y - offs[s + c, 1].astype(np.float32), z[n, c]], axis=1)
+        inside = np.zeros(len(n), bool)
+        for a, b in path:
+            q, move = local - a.astype(np.float32), b - a
+            for k in range(len(lo)):
+                ok = np.ones(len(q), bool)
+                s0, s1 = np.zeros(len(q), np.float32), np.ones(len(q), np.float32)
+                for ax in range(3):
+                    if abs(move[ax]) < 1e-12:
+                        ok &= (q[:, ax] >= lo[k, ax]) & (q[:, ax] <= hi[k, ax])
+                    else:
+                        t0 = (q[:, ax] - hi[k, ax]) / move[ax]
+                        t1 = (q[:, ax] - lo[k, ax]) / move[ax]
+                        if move[ax] < 0:
+                            t0, t1 = t1, t0
+                        np.maximum(s0, t0, out=s0)
+                        np.minimum(s1, t1, out=s1)
+                inside |= ok & (s0 <= s1)
+        d = local - np.array([0.0, 0.0, PUSH_START], np.float32)
+        inside &= np.einsum("ij,ij->i", d, d) > check.contact_radius ** 2
+        out[s:e] = np.bincount(c[inside], minlength=e - s)
+    return out
+
+
+def _scene(seed: int = 0, n: int = 600):
+    rng = np.random.default_rng(seed)
+    cloud = np.concatenate([handle_on_plane(), plane(0.12, half=0.1, step=0.02)])
+    cloud += rng.uniform(-0.002, 0.002, cloud.shape)
+    idx = rng.integers(0, len(cloud), n)
+    return cloud, cloud[idx], rng.normal(size=(n, 3)), rng.normal(size=(n, 3))
+
+
+@pytest.mark.parametrize("primitive", ["push", "pull", "pull-up"])
+def test_the_torch_check_counts_what_the_numpy_one_counted(primitive):
+    cloud, pts, up, fwd = _scene()
+    for check in (ApproachCheck(), ApproachCheck(margin=0.0, contact_radius=0.02, standoff=0.01)):
+        ref = _numpy_hits(cloud, pts, up, fwd, primitive, check)
+        assert 0 < (ref == 0).sum() < len(ref)
+        np.testing.assert_array_equal(approach_hits(cloud, pts, up, fwd, primitive, check), ref)
+        np.testing.assert_array_equal(  # ragged chunks
+            approach_hits(cloud, pts, up, fwd, primitive, check, chunk_pairs=7 * len(cloud)), ref)
+
+
+@pytest.mark.slow
+def test_the_torch_check_counts_what_the_numpy_one_counted_on_simulated_clouds():
+    """Every category's first training object, the exploring round's candidates."""
+    from w2e_ros.core.categories import load_categories
+    from w2e_ros.core.explore import sample_candidates
+    from w2e_ros.core.sim_world import SimWorld, Target
+
+    world, rng, cats = SimWorld(), np.random.default_rng(0), load_categories()
+    for cat in cats.categories:
+        cloud = world.observe(Target(cat, cats.instances(cat, "train")[0], 0))
+        c = sample_candidates(cloud, 256, 8, rng, cloud.movable)
+        p = cloud.points[c.point_index]
+        for prim in ("push", "pull"):
+            np.testing.assert_array_equal(
+                approach_hits(cloud.points, p, c.up, c.forward, prim),
+                _numpy_hits(cloud.points, p, c.up, c.forward, prim), err_msg=f"{cat} {prim}")
+
+
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_tensors_are_checked_on_their_device(device):
+    cloud, pts, up, fwd = _scene(1, 200)
+    ref = approach_hits(cloud, pts, up, fwd, "pull")
+    t = [torch.as_tensor(a, device=device) for a in (cloud, pts, up, fwd)]
+    hits = approach_hits(*t, "pull")
+    assert isinstance(hits, torch.Tensor) and hits.device.type == device
+    np.testing.assert_array_equal(hits.cpu().numpy(), ref)
+    ok = approach_clear(*t, "pull")
+    assert ok.device.type == device
+    assert first_clear(*t, "pull") == int(np.flatnonzero(ref == 0)[0])
 
 
 def test_first_clear_takes_the_best_candidate_whose_approach_is_clear():

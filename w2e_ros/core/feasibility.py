@@ -13,15 +13,19 @@ in the robot frame. Hidden surfaces are not checked, so a clear approach is not 
 free one, but a blocked approach is a blocked one.
 
 Cost: every candidate against every point, as a few matrix products and comparisons on
-(chunk, N) arrays; ``bench/approach_check.py`` times it (thousands of candidates against a
-2048-point cloud in a small fraction of a second).
+(N, chunk) arrays, in torch so that a GPU runs it when the inputs are there;
+``bench/approach_check.py`` times it (thousands of candidates against a 2048-point cloud in a
+small fraction of a second) and ``bench/bench_round_cpu.py`` against the numpy version it
+replaced.
 """
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import asdict, dataclass
 
 import numpy as np
+import torch
 
 from w2e_ros.core.primitives import (
     FINGER_HALF,
@@ -31,6 +35,7 @@ from w2e_ros.core.primitives import (
     PUSH_START,
     schedule,
 )
+from w2e_ros.core.threads import torch_threads
 
 
 @dataclass(frozen=True)
@@ -109,53 +114,94 @@ def approach_path(primitive: str, standoff: float = 0.0
     return path or [(current, current)], opening  # no move: the hand at its start pose
 
 
-def _frames(up: np.ndarray, forward: np.ndarray) -> np.ndarray:
+def _frames(up: torch.Tensor, forward: torch.Tensor) -> torch.Tensor:
     """(C, 3), (C, 3) -> (C, 3, 3) gripper frames, columns [forward, left, up] (as
     ``primitives.gripper_frame``, for many actions at once)."""
-    n = np.linalg.norm(up, axis=1, keepdims=True)
-    if np.any(n < 1e-9):
+    n = torch.linalg.vector_norm(up, dim=1, keepdim=True)
+    if bool((n < 1e-9).any()):
         raise ValueError("approach direction (up) of zero length")
     up = up / n
-    fwd = forward - np.sum(forward * up, axis=1, keepdims=True) * up
-    nf = np.linalg.norm(fwd, axis=1, keepdims=True)
-    if np.any(nf < 1e-9):
+    fwd = forward - (forward * up).sum(dim=1, keepdim=True) * up
+    nf = torch.linalg.vector_norm(fwd, dim=1, keepdim=True)
+    if bool((nf < 1e-9).any()):
         raise ValueError("forward is zero or parallel to up")
     fwd = fwd / nf
-    return np.stack([fwd, np.cross(up, fwd), up], axis=2)
+    return torch.stack([fwd, torch.linalg.cross(up, fwd, dim=1), up], dim=2)
 
 
-def _finite(name: str, a, shape: tuple[int | None, ...]) -> np.ndarray:
-    a = np.asarray(a, dtype=np.float64)
-    if a.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, a.shape,
-                                                                               strict=True)):
+Array = np.ndarray | torch.Tensor
+
+
+def _finite(name: str, a: Array, shape: tuple[int | None, ...],
+            device: torch.device) -> torch.Tensor:
+    """``a`` as a float64 tensor on ``device``, its shape and values checked."""
+    a = torch.as_tensor(a, dtype=torch.float64, device=device)
+    if a.dim() != len(shape) or any(s is not None and s != d for s, d in zip(shape, a.shape,
+                                                                             strict=True)):
         want = ", ".join("C" if s is None else str(s) for s in shape)
-        raise ValueError(f"{name} must have shape ({want}), got {a.shape}")
-    if not np.all(np.isfinite(a)):
-        raise ValueError(f"{name} holds NaN or infinite values ({int(np.sum(~np.isfinite(a)))} "
-                         "entries): drop them (a camera cloud's holes) before the check")
+        raise ValueError(f"{name} must have shape ({want}), got {tuple(a.shape)}")
+    bad = int((~torch.isfinite(a)).sum())
+    if bad:
+        raise ValueError(f"{name} holds NaN or infinite values ({bad} entries): drop them (a "
+                         "camera cloud's holes) before the check")
     return a
 
 
-def approach_hits(cloud: np.ndarray, point: np.ndarray, up: np.ndarray, forward: np.ndarray,
-                  primitive: str, check: ApproachCheck = DEFAULT_CHECK,
-                  chunk_pairs: int = 1 << 22) -> np.ndarray:
+def _f32_at_least(b: float) -> float:
+    """The smallest float32 >= ``b``: ``x >= b`` for a float32 ``x`` without widening it."""
+    f = np.float32(b)
+    return float(f if f >= b else np.nextafter(f, np.float32(np.inf)))
+
+
+def _f32_at_most(b: float) -> float:
+    """The largest float32 <= ``b``."""
+    f = np.float32(b)
+    return float(f if f <= b else np.nextafter(f, np.float32(-np.inf)))
+
+
+CPU_CHUNK_PAIRS = 1 << 20
+"""(point, candidate) pairs per step of the coarse test on the CPU. 2048 x 2048 pairs (cabinet
+40, pull) on a busy 2-core CPU: 50 / 30 / 29 / 32-46 ms at 64k / 256k / 1M / 4M a step."""
+
+GPU_CHUNK_PAIRS = 1 << 24
+"""Pairs per step on a GPU: few kernel launches, at most 64 MB per intermediate."""
+
+
+def approach_hits(cloud: Array, point: Array, up: Array, forward: Array, primitive: str,
+                  check: ApproachCheck = DEFAULT_CHECK,
+                  chunk_pairs: int | None = None) -> Array:
     """(C,) number of ``cloud`` points (N, 3) inside the hand swept along each candidate's
     approach, not counting the points within ``check.contact_radius`` of its contact point.
 
     ``point``, ``up``, ``forward``: (C, 3) (or (3,) for one candidate), the actions'
-    contact points and gripper frames in the cloud's frame. Raises ValueError on an empty
-    cloud, non-finite values or degenerate frames.
+    contact points and gripper frames in the cloud's frame. Numpy arrays in, a numpy array
+    out; with torch tensors among the inputs the work runs on their device (a GPU in the
+    exploring round) and the counts come back as a tensor there. Raises ValueError on an
+    empty cloud, non-finite values or degenerate frames.
 
     Two passes: every (candidate, point) pair is first tested against the box bounding the
     whole swept hand along the two axes that cut most (forward and up: two matrix products
-    and a few comparisons on (N, C) arrays); the few pairs left get the exact test."""
-    cloud = np.asarray(cloud)
+    and a few comparisons on (N, c) arrays, ``chunk_pairs`` at a time); the few pairs left
+    get the exact test. On the CPU it runs on one torch thread (see
+    :func:`w2e_ros.core.threads.torch_threads`)."""
+    tensors = [a for a in (cloud, point, up, forward) if isinstance(a, torch.Tensor)]
+    dev = tensors[0].device if tensors else torch.device("cpu")
+    with torch_threads(1) if dev.type == "cpu" else contextlib.nullcontext():
+        out = _hits(cloud, point, up, forward, primitive, check, chunk_pairs, dev)
+    return out if tensors else out.numpy()
+
+
+def _hits(cloud: Array, point: Array, up: Array, forward: Array, primitive: str,
+          check: ApproachCheck, chunk_pairs: int | None, dev: torch.device) -> torch.Tensor:
+    """:func:`approach_hits` on ``dev``."""
+    if not isinstance(cloud, torch.Tensor):
+        cloud = np.asarray(cloud)
     if cloud.ndim == 2 and len(cloud) == 0:
         raise ValueError("empty cloud: there is nothing to check the approach against "
                          "(is the object segmented?)")
-    cloud = _finite("cloud", cloud, (None, 3))
-    point, up, forward = (_finite(n, np.atleast_2d(a), (None, 3)) for n, a in
-                          (("point", point), ("up", up), ("forward", forward)))
+    cloud_t = _finite("cloud", cloud, (None, 3), dev)
+    point, up, forward = (_finite(n, torch.atleast_2d(torch.as_tensor(a)), (None, 3), dev)
+                          for n, a in (("point", point), ("up", up), ("forward", forward)))
     if not len(point) == len(up) == len(forward):
         raise ValueError(f"{len(point)} points, {len(up)} up and {len(forward)} forward vectors")
     R = _frames(up, forward)  # (C, 3, 3) columns forward, left, up
@@ -164,68 +210,113 @@ def approach_hits(cloud: np.ndarray, point: np.ndarray, up: np.ndarray, forward:
     lo, hi = lo - check.margin, hi + check.margin  # (B, 3)
     ends = np.array([p for seg in path for p in seg])  # (2S, 3) wrist offsets on the way
     blo, bhi = lo.min(0) + ends.min(0), hi.max(0) + ends.max(0)  # bounds of the swept hand
+    x_lo, x_hi, z_lo, z_hi = (_f32_at_least(blo[0]), _f32_at_most(bhi[0]),
+                              _f32_at_least(blo[2]), _f32_at_most(bhi[2]))
     # coordinates relative to the start pose, in f32 (half the memory traffic); the cloud is
     # centred first so the f32 error stays at micrometres whatever the robot frame
-    centre = cloud.mean(axis=0)
-    pts = (cloud - centre).astype(np.float32)  # (N, 3)
+    centre = cloud_t.mean(dim=0)
+    pts = (cloud_t - centre).float()  # (N, 3)
     wrist = point - PUSH_START * R[:, :, 2] - centre  # (C, 3) start poses
-    offs = np.einsum("cij,ci->cj", R, wrist)  # (C, 3) start pose in its own frame
-    out = np.zeros(len(point), np.int64)
-    step = max(1, chunk_pairs // max(len(pts), 1))
+    offs = torch.einsum("cij,ci->cj", R, wrist).float()  # (C, 3) start pose in its own frame
+    R32 = R.float()
+    R1, offs1 = R32[:, :, 1].contiguous(), offs[:, 1].contiguous()  # for the pairs left
+    boxes = _SweptBoxes(path, lo, hi, dev)
+    tip = torch.tensor([0.0, 0.0, PUSH_START], dtype=torch.float32, device=dev)
+    r2 = torch.tensor(check.contact_radius ** 2, dtype=torch.float32, device=dev)
+    out = torch.zeros(len(point), dtype=torch.int64, device=dev)
+    if chunk_pairs is None:
+        chunk_pairs = CPU_CHUNK_PAIRS if dev.type == "cpu" else GPU_CHUNK_PAIRS
+    N = len(pts)
+    step = max(1, chunk_pairs // max(N, 1))
+    # one set of (N, step) buffers for every chunk: fresh multi-MB arrays each time cost
+    # page faults that took as long as the arithmetic
+    bufs = [torch.empty(N * min(step, len(point)), dtype=t, device=dev)
+            for t in (torch.float32, torch.float32, torch.bool, torch.bool)]
     for s in range(0, len(point), step):
         e = min(s + step, len(point))
-        x = pts @ R[s:e, :, 0].T.astype(np.float32) - offs[s:e, 0].astype(np.float32)  # (N, c)
-        z = pts @ R[s:e, :, 2].T.astype(np.float32) - offs[s:e, 2].astype(np.float32)
-        near = (x >= blo[0]) & (x <= bhi[0]) & (z >= blo[2]) & (z <= bhi[2])
-        n, c = np.nonzero(near)  # the pairs left: the exact test
-        y = np.einsum("ij,ij->i", pts[n], R[s + c, :, 1].astype(np.float32))
-        local = np.stack([x[n, c], y - offs[s + c, 1].astype(np.float32), z[n, c]], axis=1)
-        inside = np.zeros(len(n), bool)
-        for a, b in path:
-            inside |= _swept(local, a, b - a, lo, hi)
-        d = local - np.array([0.0, 0.0, PUSH_START], np.float32)
-        inside &= np.einsum("ij,ij->i", d, d) > check.contact_radius ** 2
-        out[s:e] = np.bincount(c[inside], minlength=e - s)
+        x, z, near, tmp = (b[:N * (e - s)].view(N, e - s) for b in bufs)  # (N, c)
+        torch.mm(pts, R32[s:e, :, 0].T, out=x).sub_(offs[s:e, 0])
+        torch.mm(pts, R32[s:e, :, 2].T, out=z).sub_(offs[s:e, 2])
+        torch.ge(x, x_lo, out=near)
+        near &= torch.le(x, x_hi, out=tmp)
+        near &= torch.ge(z, z_lo, out=tmp)
+        near &= torch.le(z, z_hi, out=tmp)
+        flat = _flatnonzero(near)  # the pairs left: the exact test
+        n, c = flat // (e - s), flat % (e - s)
+        y = (pts[n] * R1[s + c]).sum(dim=1) - offs1[s + c]
+        local = torch.stack([x.view(-1)[flat], y, z.view(-1)[flat]], dim=1)  # (M, 3)
+        d = local - tip
+        inside = boxes.hit(local) & ((d * d).sum(dim=1) > r2)
+        out[s:e] = torch.bincount(c[inside], minlength=e - s)
     return out
 
 
-def _swept(local: np.ndarray, start: np.ndarray, move: np.ndarray, lo: np.ndarray,
-           hi: np.ndarray) -> np.ndarray:
-    """(M,) local points (M, 3) inside any box (lo, hi: (B, 3)) translated from ``start`` by
-    ``s * move`` for some s in [0, 1]: per axis the interval of s that keeps the point within
-    the box, intersected over the axes (the slab test); an axis the move does not change is
-    a plain bound."""
-    q = local - start.astype(np.float32)
-    hit = np.zeros(len(local), bool)
-    for b in range(len(lo)):
-        ok = np.ones(len(local), bool)
-        s0, s1 = np.zeros(len(local), np.float32), np.ones(len(local), np.float32)
-        for k in range(3):
-            if abs(move[k]) < 1e-12:
-                ok &= (q[:, k] >= lo[b, k]) & (q[:, k] <= hi[b, k])
-            else:
-                t0, t1 = (q[:, k] - hi[b, k]) / move[k], (q[:, k] - lo[b, k]) / move[k]
-                if move[k] < 0:
-                    t0, t1 = t1, t0
-                np.maximum(s0, t0, out=s0)
-                np.minimum(s1, t1, out=s1)
-        hit |= ok & (s0 <= s1)
-    return hit
+def _flatnonzero(mask: torch.Tensor) -> torch.Tensor:
+    """Flat indices of a mask's true entries; numpy's on the CPU (5x faster than torch's
+    there, and shares the memory)."""
+    if mask.device.type == "cpu":
+        return torch.from_numpy(np.flatnonzero(mask.numpy()))
+    return torch.nonzero(mask.view(-1)).squeeze(1)
 
 
-def approach_clear(cloud: np.ndarray, point: np.ndarray, up: np.ndarray, forward: np.ndarray,
-                   primitive: str, check: ApproachCheck = DEFAULT_CHECK) -> np.ndarray:
+class _SweptBoxes:
+    """The hand's boxes (lo, hi: (B, 3)) swept along the path's straight segments."""
+
+    def __init__(self, path: list[tuple[np.ndarray, np.ndarray]], lo: np.ndarray,
+                 hi: np.ndarray, device: torch.device) -> None:
+        self.segments = [(torch.tensor(a, dtype=torch.float32, device=device),
+                          np.asarray(b, float) - np.asarray(a, float)) for a, b in path]
+        self.lo, self.hi = lo, hi
+
+    def hit(self, local: torch.Tensor) -> torch.Tensor:
+        """(M,) local points (M, 3) inside any box on any segment."""
+        inside = torch.zeros(len(local), dtype=torch.bool, device=local.device)
+        for start, move in self.segments:
+            inside |= self._swept(local - start, move)
+        return inside
+
+    def _swept(self, q: torch.Tensor, move: np.ndarray) -> torch.Tensor:
+        """(M,) points q (M, 3), relative to the segment's start, inside any box translated
+        by ``s * move`` for some s in [0, 1]: per axis the interval of s that keeps the point
+        within the box, intersected over the axes (the slab test; its ends in float64,
+        rounded to float32); an axis the move does not change is a plain bound."""
+        cols = [q[:, k] for k in range(3)]
+        moving = [k for k in range(3) if abs(move[k]) >= 1e-12]
+        wide = {k: cols[k].double() for k in moving}
+        hit = torch.zeros(len(q), dtype=torch.bool, device=q.device)
+        for lo, hi in zip(self.lo, self.hi, strict=True):
+            ok = torch.ones(len(q), dtype=torch.bool, device=q.device)
+            for k in range(3):
+                if k not in wide:
+                    ok &= (cols[k] >= _f32_at_least(lo[k])) & (cols[k] <= _f32_at_most(hi[k]))
+            if moving:
+                s0 = torch.zeros(len(q), dtype=torch.float32, device=q.device)
+                s1 = torch.ones(len(q), dtype=torch.float32, device=q.device)
+                for k in moving:
+                    t0 = ((wide[k] - hi[k]) / move[k]).float()
+                    t1 = ((wide[k] - lo[k]) / move[k]).float()
+                    if move[k] < 0:
+                        t0, t1 = t1, t0
+                    s0, s1 = torch.maximum(s0, t0), torch.minimum(s1, t1)
+                ok &= s0 <= s1
+            hit |= ok
+        return hit
+
+
+def approach_clear(cloud: Array, point: Array, up: Array, forward: Array, primitive: str,
+                   check: ApproachCheck = DEFAULT_CHECK) -> Array:
     """(C,) bool: the approach of each candidate runs into at most ``check.max_points``
-    observed points (see :func:`approach_hits`)."""
+    observed points (see :func:`approach_hits`; numpy in, numpy out, tensors on their
+    device)."""
     return approach_hits(cloud, point, up, forward, primitive, check) <= check.max_points
 
 
-def first_clear(cloud: np.ndarray, point: np.ndarray, up: np.ndarray, forward: np.ndarray,
-                primitive: str, check: ApproachCheck = DEFAULT_CHECK) -> int:
+def first_clear(cloud: Array, point: Array, up: Array, forward: Array, primitive: str,
+                check: ApproachCheck = DEFAULT_CHECK) -> int:
     """Index of the first candidate (best first: the caller's order) whose approach is
     clear, -1 when none is."""
-    ok = approach_clear(cloud, point, up, forward, primitive, check)
-    return int(np.argmax(ok)) if ok.any() else -1
+    ok = torch.as_tensor(approach_clear(cloud, point, up, forward, primitive, check))
+    return int(torch.argmax(ok.to(torch.uint8))) if bool(ok.any()) else -1
 
 
 # --- can the arm follow the action? -----------------------------------------------------
