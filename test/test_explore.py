@@ -8,7 +8,7 @@ import torch
 from synthetic import Cloud, RuleWorld, synthetic_data
 
 from w2e_ros.core.config import ExploreConfig, ModelConfig
-from w2e_ros.core.explore import Executed, explore, sample_candidates
+from w2e_ros.core.explore import Executed, cloud_proposer, explore, sample_candidates
 from w2e_ros.core.feasibility import Arm, approach_clear, arm_reachable
 from w2e_ros.core.finetune import W2EExplorer
 from w2e_ros.core.model import W2EModel
@@ -337,6 +337,20 @@ def test_none_strategy_spends_nothing_and_snapshots_the_initial_model(novel, rep
     assert res.stopped == "none" and not world.executed
     assert all(torch.equal(res.snapshots[b]["aff_head.out.bias"],
                            res.snapshots[0]["aff_head.out.bias"]) for b in (1, 2, 5))
+
+
+def test_a_proposer_built_once_draws_what_one_built_every_round_drew(novel):
+    """The loop builds each cloud's proposal pools once: the same seed, the same candidates
+    round after round as building them for every draw."""
+    clouds = [Cloud(novel.points[i], novel.normals[i], novel.movable[i]) for i in range(3)]
+    fresh, kept = np.random.default_rng(5), np.random.default_rng(5)
+    proposers = [cloud_proposer(c, c.movable) for c in clouds]
+    for _ in range(3):  # rounds
+        for c, p in zip(clouds, proposers, strict=True):
+            a = sample_candidates(c, 32, 4, fresh, c.movable)
+            b = sample_candidates(c, 32, 4, kept, proposer=p)
+            for f in ("point_index", "up", "forward"):
+                np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
 
 
 def test_fine_tuning_fits_the_explored_interactions(novel):

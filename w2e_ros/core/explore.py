@@ -22,6 +22,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
+import torch
 
 from w2e_ros.core.actions import sample_forward, sample_up
 from w2e_ros.core.config import ExploreConfig
@@ -66,13 +67,25 @@ class Candidates:
                       primitive=primitive)
 
 
+def cloud_proposer(cloud: CloudLike, mask: np.ndarray | None = None,
+                   proposal: ProposalConfig = DEFAULT_PROPOSAL) -> Proposer:
+    """The proposal distribution on ``cloud`` (favouring ``mask`` points when it marks any:
+    the simulator's movable parts). Its pools cost a nearest-neighbour search over the
+    cloud, so a loop that samples the same cloud every round builds it once."""
+    return Proposer(cloud.points, cloud.normals, mask if mask is not None and np.any(mask)
+                    else None, proposal)
+
+
 def sample_candidates(cloud: CloudLike, num_points: int, dirs_per_point: int,
                       rng: np.random.Generator, mask: np.ndarray | None = None,
-                      proposal: ProposalConfig = DEFAULT_PROPOSAL) -> Candidates:
+                      proposal: ProposalConfig = DEFAULT_PROPOSAL,
+                      proposer: Proposer | None = None) -> Candidates:
     """``num_points`` contact points x ``dirs_per_point`` actions from the proposal
-    distribution (favouring ``mask`` points when given: the simulator's movable parts)."""
-    p = Proposer(cloud.points, cloud.normals, mask if mask is not None and np.any(mask)
-                 else None, proposal).sample(num_points, dirs_per_point, rng)
+    distribution (favouring ``mask`` points when given: the simulator's movable parts).
+    ``proposer``: the cloud's :func:`cloud_proposer` already built (then ``mask`` and
+    ``proposal`` are its own)."""
+    proposer = proposer or cloud_proposer(cloud, mask, proposal)
+    p = proposer.sample(num_points, dirs_per_point, rng)
     return Candidates(p.point_index, p.up, p.forward)
 
 
@@ -89,15 +102,20 @@ def map_candidates(cloud: CloudLike, dirs_per_point: int, rng: np.random.Generat
 
 
 def clear_candidates(cloud: CloudLike, cands: Candidates, primitive: str,
-                     check: ApproachCheck = DEFAULT_CHECK) -> Candidates:
+                     check: ApproachCheck = DEFAULT_CHECK,
+                     device: torch.device | str | None = None) -> Candidates:
     """The candidates whose approach does not run into the observed cloud
     (:mod:`w2e_ros.core.feasibility`), in their order; ``source`` keeps pointing into the
-    pool they came from."""
+    pool they came from. ``device``: where the check runs (a GPU: the model's; None: the
+    CPU)."""
     pts = np.asarray(cloud.points)
     if not len(cands):
         return cands
-    keep = np.flatnonzero(approach_clear(pts, pts[cands.point_index], cands.up, cands.forward,
-                                         primitive, check))
+    args = [pts, pts[cands.point_index], cands.up, cands.forward]
+    if device is not None and torch.device(device).type != "cpu":
+        args = [torch.from_numpy(np.ascontiguousarray(a)).to(device) for a in args]
+    ok = approach_clear(*args, primitive, check)
+    keep = np.flatnonzero(ok.cpu().numpy() if isinstance(ok, torch.Tensor) else ok)
     return Candidates(cands.point_index[keep], cands.up[keep], cands.forward[keep],
                       None if cands.source is None else cands.source[keep])
 
@@ -201,10 +219,12 @@ def explore(model: ExplorationModel, world: ExplorationWorld, targets: Sequence[
     groups = [str(getattr(t, "category", "all")) for t in targets]
     mask_of = (lambda c: getattr(c, "movable", None)) if cfg.use_mask else (lambda c: None)
 
+    check_device = getattr(model, "device", None)  # the model's GPU runs the check too
+
     def feasible(cloud: CloudLike, cands: Candidates) -> Candidates:
         if cfg.check_approach:
             n = len(cands)
-            cands = clear_candidates(cloud, cands, primitive)
+            cands = clear_candidates(cloud, cands, primitive, device=check_device)
             log.debug("approach check: %d of %d candidates clear", len(cands), n)
         if arm.kind != FLYING.kind and len(cands):
             pts = np.asarray(cloud.points)
@@ -223,6 +243,7 @@ def explore(model: ExplorationModel, world: ExplorationWorld, targets: Sequence[
         labels = [np.array([world.execute(t, p.action(c, i, primitive)).success
                             for i in range(len(p))], np.float32)
                   for c, t, p in zip(clouds, targets, pools, strict=True)]
+    proposers = [cloud_proposer(c, mask_of(c)) for c in clouds] if pools is None else []
     used: list[set[int]] = [set() for _ in targets]
     taken = np.zeros(n, np.int64)  # interactions per object, this run
     cap = math.ceil(cfg.object_cap * cfg.budget) if cfg.object_cap > 0 else None
@@ -238,7 +259,8 @@ def explore(model: ExplorationModel, world: ExplorationWorld, targets: Sequence[
             cands = [_without(p, u) for p, u in zip(pools, used, strict=True)]
         else:
             cands = [feasible(c, sample_candidates(c, cfg.points_per_object, cfg.dirs_per_point,
-                                                   rng, mask_of(c))) for c in clouds]
+                                                   rng, proposer=p))
+                     for c, p in zip(clouds, proposers, strict=True)]
         scored = model.score(clouds, cands)
         obj_mean = [float(np.mean(s.similarity)) if len(s.similarity) else 1.0
                     for s in scored]
