@@ -228,10 +228,12 @@ def test_a_balanced_similarity_stays_balanced_while_fine_tuning(novel):
     assert losses[True] != pytest.approx(losses[False], rel=1e-3)
 
 
-def test_default_fine_tuning_fits_what_it_explored():
-    """Issue 26: after a round the model must fit its own explored set (AUROC >= 0.95).
-    Real simulator pulls (the shipped replay pack) on the shipped pull model: the default
-    fits them; the former default (L2-SP anchor 0.1, at most 500 steps) stopped near 0.8."""
+def test_default_fine_tuning_learns_what_it_explored_within_its_prior():
+    """Issue 26: the default fit learns what it explored, and how far it may move the model
+    grows with the number of explored interactions (the prior's weight is prior / N). Real
+    simulator pulls (the shipped replay pack) on the shipped pull model. Measured on the
+    validation split (bench/RESEARCH.md): fitted freely, 55 random novel pulls cost 6
+    AUROC points; with the prior 4, and 1,100 pulls gain 4."""
     from w2e_ros.core.data import InteractionData
     from w2e_ros.core.model import load_model
     from w2e_ros.paths import default_checkpoint, default_replay_pack
@@ -239,16 +241,26 @@ def test_default_fine_tuning_fits_what_it_explored():
     data = InteractionData.load(default_replay_pack())
     data = data.subset(data.primitive == "pull")
     assert data.success.sum() >= 5
-    fits, steps = {}, {}
-    for name, kw in (("default", {}), ("plateau", {"fit_target": 0.0}),
-                     ("anchored", {"anchor": 0.1, "finetune_steps": 500, "fit_target": 0.0})):
-        model, _ = load_model(default_checkpoint("pull"), "cpu")
-        exp = W2EExplorer(model, ExploreConfig(**kw), None, SIM, (), seed=0,
-                          features=FeatureCache())
-        exp.add_data(data)
-        out = exp.fit()
-        fits[name], steps[name] = out["fit_auroc"], out["fit_steps"]
-    assert fits["default"] >= ExploreConfig().fit_target, fits
-    assert fits["anchored"] < 0.9, fits
-    # the default stops once fitted instead of running on to the loss plateau
-    assert steps["default"] < steps["plateau"], steps
+    pos = np.flatnonzero(data.success)
+    few = np.sort(np.concatenate([pos[:3], np.flatnonzero(~data.success)[:27]]))
+    fits, moved = {}, {}
+    for name, kw in (("default", {}), ("free", {"prior": 0.0})):
+        for rows in (few, None):
+            model, _ = load_model(default_checkpoint("pull"), "cpu")
+            start = {k: v.detach().clone() for k, v in model.named_parameters()}
+            exp = W2EExplorer(model, ExploreConfig(**kw), None, SIM, (), seed=0,
+                              features=FeatureCache())
+            exp.add_data(data, rows)
+            before = exp.explored_fit()["fit_auroc"]
+            out = exp.fit()
+            n = len(exp.explored)
+            fits[name, n] = (before, out["fit_auroc"])
+            moved[name, n] = sum(float(((p.detach() - start[k]) ** 2).sum())
+                                 for k, p in model.named_parameters())
+    before, after = fits["default", 180]
+    assert after >= before + 0.15, fits  # measured: 0.63 -> 0.88
+    assert fits["free", 180][1] >= ExploreConfig().fit_target, fits  # no prior: memorised
+    # 30 interactions may move the model far less than 180 (measured 1.1 vs 5.0), and far
+    # less than an unconstrained fit on the same 30 (29)
+    assert moved["default", 30] < moved["default", 180] / 3, moved
+    assert moved["default", 30] < moved["free", 30] / 10, moved

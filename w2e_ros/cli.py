@@ -272,6 +272,10 @@ def _add_explore_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--anchor", type=float, default=d.anchor,
                    help="L2-SP weight pulling the fine-tuned heads towards the trained ones "
                         "(0: off); without it a few interactions made the model worse")
+    p.add_argument("--prior", type=float, default=d.prior,
+                   help="L2-SP weight times the number of explored interactions: the anchor "
+                        "adds prior / N, strong after a few interactions, weak after many "
+                        "(0: off)")
     p.add_argument("--fit-target", type=float, default=d.fit_target,
                    help="a fit stops once it ranks the explored set at this AUROC (0: fit to "
                         "the loss plateau)")
@@ -300,7 +304,7 @@ def _explore_config(a: argparse.Namespace, **kw: object) -> ExploreConfig:
                          finetune_clouds=a.finetune_clouds,
                          encoder_lr_scale=a.encoder_lr_scale,
                          replay_fraction=a.replay_fraction, anchor=a.anchor,
-                         fit_target=a.fit_target,
+                         prior=a.prior, fit_target=a.fit_target,
                          use_mask=not a.no_mask, check_approach=a.check_approach,
                          sim_bar=a.bar, similarity_update=a.similarity_update, **kw)
 
