@@ -28,7 +28,8 @@ it rejects and how many successes it throws away; that table is rerun and report
 
 Usage: .venv/bin/python bench/approach_check.py [--per-category 5] [--out DIR]
 Writes DIR/results.json and DIR/results.md (default bench/results/approach_check) and the
-README's table (``--readme`` alone re-renders it from the JSON, ``--readme --check`` tests it).
+table of docs/ros_api.md ("The approach check"; ``--readme`` alone re-renders it from the
+JSON, ``--readme --check`` tests it).
 """
 
 from __future__ import annotations
@@ -227,7 +228,7 @@ def _pct(d: dict) -> str:
 
 
 def render_main(res: dict) -> list[str]:
-    """The before / after table and what it was measured on (results.md and the README)."""
+    """The before / after table and what it was measured on (results.md and docs/ros_api.md)."""
     lines = ["| verb | primitive | n | invalid before | invalid after | change | "
              "success before | success after | change | action changed | refused | "
              "check ms / object (median, max) |",
@@ -301,24 +302,24 @@ def to_json(res: dict) -> str:
     return head + ',\n "objects": {\n' + objs + "\n }\n}\n"
 
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+README = Path(__file__).resolve().parents[1] / "docs" / "ros_api.md"  # holds the table
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "approach_check"
 BEGIN, END = "<!-- approach_check:begin -->", "<!-- approach_check:end -->"
 
 
 def readme(results: Path, check: bool) -> int:
-    """Rewrite (or, with ``check``, compare) the README's block from the committed JSON."""
+    """Rewrite (or, with ``check``, compare) docs/ros_api.md's block from the committed JSON."""
     res = json.loads(results.read_text())
     text = README.read_text()
     if BEGIN not in text or END not in text:
-        print(f"README.md has no {BEGIN} ... {END} block", file=sys.stderr)
+        print(f"{README} has no {BEGIN} ... {END} block", file=sys.stderr)
         return 1
     head, rest = text.split(BEGIN, 1)
     _, tail = rest.split(END, 1)
     new = head + BEGIN + "\n" + "\n".join(render_main(res)) + "\n" + END + tail
     if check:
         if new != text:
-            print(f"README.md's approach-check block is not {results} rendered: run "
+            print(f"{README}'s approach-check block is not {results} rendered: run "
                   "bench/approach_check.py --readme", file=sys.stderr)
             return 1
         return 0
@@ -345,9 +346,9 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--out", default=str(DEFAULT_OUT))
     ap.add_argument("--readme", action="store_true",
-                    help="only rewrite the README's block from OUT/results.json")
+                    help="only rewrite docs/ros_api.md's block from OUT/results.json")
     ap.add_argument("--check", action="store_true",
-                    help="with --readme: exit 1 when the README's block is stale")
+                    help="with --readme: exit 1 when docs/ros_api.md's block is stale")
     args = ap.parse_args()
     if args.readme:
         sys.exit(readme(Path(args.out) / "results.json", args.check))
@@ -384,7 +385,7 @@ def main() -> None:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.json").write_text(to_json(res))
-    if out.resolve() == DEFAULT_OUT.resolve():  # the committed results: the README follows
+    if out.resolve() == DEFAULT_OUT.resolve():  # the committed results: docs/ros_api.md follows
         readme(out / "results.json", check=False)
     md = render(res)
     (out / "results.md").write_text("# Approach check: invalid and success rates before / "

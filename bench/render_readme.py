@@ -1,6 +1,6 @@
 """Write the benchmark tables of docs/results.md from ``bench/results/benchmark.json``.
 
-The README's numbers must come from the committed results, not be typed by hand: this
+Published numbers must come from the committed results, not be typed by hand: this
 renders the headline table (mean over seeds with 95 % bootstrap intervals, and the paired
 differences against ``random`` and ``none``) between the ``<!-- benchmark:begin -->`` and
 ``<!-- benchmark:end -->`` markers (the largest budget; the mean over the combinations when
@@ -9,7 +9,7 @@ and ``<!-- benchmark-bN:end -->``, for one combination with a ``-<combo>`` suffi
 (``<!-- benchmark-cfw:begin -->``, ``<!-- benchmark-b1-cfw:begin -->``), and the paired
 differences against ``random`` per combination between ``<!-- benchmark-combos:begin -->``
 and ``<!-- benchmark-combos:end -->``.
-``test/test_readme_results.py`` fails when the README and the JSON disagree.
+``test/test_readme_results.py`` fails when docs/results.md and the JSON disagree.
 
     .venv/bin/python bench/render_readme.py            # rewrite the block
     .venv/bin/python bench/render_readme.py --check    # exit 1 when it is stale
@@ -143,7 +143,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", default=str(ROOT / "bench" / "results" / "benchmark.json"))
     ap.add_argument("--readme", default=str(ROOT / "docs" / "results.md"))
-    ap.add_argument("--check", action="store_true", help="exit 1 if the README is stale")
+    ap.add_argument("--check", action="store_true", help="exit 1 if docs/results.md is stale")
     a = ap.parse_args(argv)
     doc = json.loads(Path(a.json).read_text())
     text = Path(a.readme).read_text()
@@ -153,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
     new = rewrite(text, doc)
     if a.check:
         if new != text:
-            print("README benchmark block is stale: run bench/render_readme.py",
+            print(f"{a.readme}: benchmark block is stale: run bench/render_readme.py",
                   file=sys.stderr)
             return 1
         return 0

@@ -1,4 +1,4 @@
-"""``w2e bringup`` as a user types it: the README documents its flags on ``w2e bringup``, so
+"""``w2e bringup`` as a user types it: README and docs/ros_api.md document its flags, so
 they must be the flags of ``python -m w2e_ros.bringup`` and must work (a REMAINDER argument
 once swallowed none of them: "unrecognized arguments")."""
 

@@ -1,12 +1,12 @@
-"""The README's parameter tables and config/*.yaml say what the nodes declare.
+"""The parameter tables of docs/ros_api.md and config/*.yaml say what the nodes declare.
 
 A table written by hand drifts (the README once gave the inference node's ``finetune_lr`` as
 0.001 where the code said 1e-4), so every node of the stack must have a table under
-``#### Parameters: `<node>` `` whose names, types and defaults are the ones its settings
-dataclass declares, read from the code when the test runs (defaults change; the table must
-follow). Every key of a ``ros__parameters`` section in config/*.yaml must be a declared
+``### Parameters: `<node>` `` in docs/ros_api.md whose names, types and defaults are the ones
+its settings dataclass declares, read from the code when the test runs (defaults change; the
+table must follow). Every key of a ``ros__parameters`` section in config/*.yaml must be a declared
 parameter of the right type; a value that differs from the default is stated in the row's
-description as ``<file>.yaml: `<value>` ``, so the README never hides what the stack runs with.
+description as ``<file>.yaml: `<value>` ``, so the docs never hide what the stack runs with.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ import yaml
 from w2e_ros.bringup import NODES
 
 ROOT = Path(__file__).resolve().parents[1]
-README = ROOT / "README.md"
+DOCS = ROOT / "docs" / "ros_api.md"  # the ROS reference (moved out of the README)
 YAML_NOTE = re.compile(r"([\w.-]+\.yaml): `([^`]*)`")
 
 
@@ -35,7 +35,7 @@ class Declared:
     """One parameter as the code declares it."""
 
     name: str
-    type: str  # as the README writes it: str, int, float, bool, list[float], ...
+    type: str  # as the docs write it: str, int, float, bool, list[float], ...
     default: Any
     description: str
 
@@ -59,7 +59,7 @@ def _settings_class(module: str) -> type:
             elif fname in ("declare_parameter", "declare_parameters"):
                 direct.append(node.lineno)
     assert not direct, (f"{module} declares parameters outside its settings dataclass (lines "
-                        f"{direct}): the README table cannot be checked against them")
+                        f"{direct}): the docs' table cannot be checked against them")
     assert len(names) == 1, f"{module}: expected one declare_typed_parameters call, got {names}"
     return getattr(importlib.import_module(module), names[0])
 
@@ -75,11 +75,11 @@ def _declared(cls: type) -> list[Declared]:
     return out
 
 
-def _readme_tables() -> dict[str, list[list[str]]]:
-    """Rows (cells) of each ``#### Parameters: `<node>` `` table of the README."""
+def _doc_tables() -> dict[str, list[list[str]]]:
+    """Rows (cells) of each ``### Parameters: `<node>` `` table of docs/ros_api.md."""
     tables: dict[str, list[list[str]]] = {}
     current: str | None = None
-    for line in README.read_text().splitlines():
+    for line in DOCS.read_text().splitlines():
         m = re.match(r"#+\s+Parameters:\s+`([^`]+)`", line)
         if m:
             current = m.group(1)
@@ -142,27 +142,27 @@ def declared() -> dict[str, list[Declared]]:
 
 
 @pytest.mark.parametrize("node", NODE_NAMES)
-def test_readme_parameter_table_matches_the_declared_parameters(node, declared):
+def test_docs_parameter_table_matches_the_declared_parameters(node, declared):
     want = declared[node]
-    tables = _readme_tables()
+    tables = _doc_tables()
     expected = "\n".join(d.row() for d in want)
     if node not in tables:
-        pytest.fail(f"README has no '#### Parameters: `{node}`' table; from the code:\n"
+        pytest.fail(f"docs/ros_api.md has no '### Parameters: `{node}`' table; from the code:\n"
                     f"{expected}")
     rows = {cells[0].strip("`"): cells for cells in tables[node]}
     assert set(rows) == {d.name for d in want}, (
-        f"README table of {node} names {sorted(rows)}; the node declares "
+        f"docs/ros_api.md table of {node} names {sorted(rows)}; the node declares "
         f"{[d.name for d in want]}. From the code:\n{expected}")
     for d in want:
         cells = rows[d.name]
-        assert cells[1] == d.type, f"{node}.{d.name}: README type {cells[1]}, declared {d.type}"
+        assert cells[1] == d.type, f"{node}.{d.name}: docs type {cells[1]}, declared {d.type}"
         assert _same(_literal(cells[2]), d.default), (
-            f"{node}.{d.name}: README default {cells[2]}, declared {d.default!r}; row:\n"
+            f"{node}.{d.name}: docs default {cells[2]}, declared {d.default!r}; row:\n"
             f"{d.row()}")
 
 
-def test_parameter_files_set_declared_parameters_and_the_readme_states_other_values(declared):
-    tables = {node: {c[0].strip("`"): c for c in rows} for node, rows in _readme_tables().items()}
+def test_parameter_files_set_declared_parameters_and_the_docs_state_other_values(declared):
+    tables = {node: {c[0].strip("`"): c for c in rows} for node, rows in _doc_tables().items()}
     files = _stack_yaml()
     assert files, "no ros__parameters file under config/"
     for fname, sections in files.items():
@@ -183,9 +183,9 @@ def test_parameter_files_set_declared_parameters_and_the_readme_states_other_val
                 notes = dict(YAML_NOTE.findall(tables.get(node, {}).get(key, [""] * 4)[3]))
                 if fname in notes:  # a stated value must be the file's
                     assert _same(_literal(notes[fname]), value), (
-                        f"README says {fname} sets {node}.{key} to {notes[fname]}; it is "
+                        f"docs/ros_api.md says {fname} sets {node}.{key} to {notes[fname]}; it is "
                         f"{value!r}")
                 elif not _same(value, d.default):
                     pytest.fail(f"{fname} sets {node}.{key} to {value!r}, not the default "
-                                f"{d.default!r}: state it in the README row's description "
+                                f"{d.default!r}: state it in the docs/ros_api.md row's description "
                                 f"as {fname}: `{value!r}`")

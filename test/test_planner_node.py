@@ -1,8 +1,9 @@
 """The planner node as a user's own code meets it: plain rclpy clients in separate processes.
 
-A second explore or manipulate sent while an explore runs must answer "busy" at once, as the
-README says, not wait silently until the first one ends (the services once shared a mutually
-exclusive callback group: measured, no answer within 30 s while a budget-3 explore ran).
+A second explore or manipulate sent while an explore runs must answer "busy" at once, as
+docs/ros_api.md says, not wait silently until the first one ends (the services once shared a
+mutually exclusive callback group: measured, no answer within 30 s while a budget-3 explore
+ran).
 """
 
 from __future__ import annotations

@@ -1,5 +1,7 @@
-"""What the README shows, git tracks: its benchmark numbers are rendered from the committed
-bench/results/benchmark.json, and every image it links exists in the repository."""
+"""What the README and docs/ show, git tracks: the benchmark numbers of docs/results.md are
+rendered from the committed bench/results/benchmark.json, the approach-check table of
+docs/ros_api.md from its committed JSON, and every image the README links exists in the
+repository (test_docs.py checks every link of docs/ too)."""
 
 from __future__ import annotations
 

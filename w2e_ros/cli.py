@@ -668,7 +668,7 @@ def _add_calibrate(sub: argparse._SubParsersAction) -> None:
                     "and is right because most actions fail' no longer reads as familiar. "
                     "A where2act model (affordance on all training categories) gets a "
                     "similarity fitted on those categories: the 'wide' variant, which "
-                    "explores with every w2e strategy (README, research log).")
+                    "explores with every w2e strategy (bench/RESEARCH.md).")
     p.add_argument("--model", required=True, help="checkpoint to calibrate")
     p.add_argument("--data", required=True, help="its training collection (w2e collect --out)")
     p.add_argument("--out", required=True, help="where to write the calibrated checkpoint")

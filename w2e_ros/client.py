@@ -219,7 +219,7 @@ class W2EClient:
                 session: str = "") -> ExploreResult:
         """Few-shot exploration of ``category`` on ``instances`` (loaded into the simulated
         scene) and/or scene ``object_ids``; ``on_progress`` sees every step. A ``session``
-        ("": "default") whose last run did not finish is continued (README: resume)."""
+        ("": "default") whose last run did not finish is continued (docs/ros_api.md: resume)."""
         req = Explore.Request(category=category, instances=[int(i) for i in instances],
                               object_ids=[int(i) for i in object_ids], primitive=primitive,
                               budget=int(budget), similarity_bar=float(bar), session=session)

@@ -50,7 +50,7 @@ Method (robot frame, metres; nearest neighbours and local planes, no ICP):
    the joint rule.
 
 The thresholds and their reasons are at :class:`CloudJudgeConfig`; the agreement with the
-joint rule over simulated trials is in the README (section "Outcome from clouds").
+joint rule over simulated trials is in docs/real_robot.md ("Outcome from clouds").
 """
 
 from __future__ import annotations

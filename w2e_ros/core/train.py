@@ -765,7 +765,7 @@ def calibrate_similarity(model: W2EModel, data: InteractionData, sim_cats: tuple
                          balanced: bool = False) -> dict[str, float]:
     """Re-fit the similarity head to predict whether the FINAL affordance head is right.
 
-    Measured (README, issue 8): the jointly trained head, whose target is the running
+    Measured (docs/results.md, issue 8): the jointly trained head, whose target is the running
     accuracy accumulated since step 0, ranked correctness on novel categories below chance
     (AUROC 0.41 push), while a head fitted afterwards to the final head's correctness ranked
     it at 0.66. The encoder and the affordance head stay as they are; the target is the hard
