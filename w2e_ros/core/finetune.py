@@ -23,7 +23,7 @@ import contextlib
 import copy
 import logging
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -38,6 +38,7 @@ from w2e_ros.core.metrics import auroc
 from w2e_ros.core.model import W2EModel
 from w2e_ros.core.predict import FEATURES, FeatureCache, cloud_key, encoder_key
 from w2e_ros.core.strategies import Scored
+from w2e_ros.core.threads import torch_threads
 from w2e_ros.core.train import RunningAccuracy, make_deterministic
 
 log = logging.getLogger("w2e.finetune")
@@ -97,19 +98,6 @@ def trains_similarity(meta: dict, cfg: ExploreConfig) -> bool:
         raise ValueError(f"unknown similarity update {cfg.similarity_update!r} "
                          f"({' | '.join(SIMILARITY_UPDATES)})")
     return bool(meta.get("sim_categories")) and cfg.similarity_update == "finetune"
-
-
-@contextlib.contextmanager
-def torch_threads(n: int) -> Iterator[None]:
-    """Run a block with ``n`` intra-op threads. A heads-only fit is thousands of tiny ops,
-    for which a second thread only adds synchronisation: measured with two other processes
-    busy on the 2-core CPU, 100 steps took 6.7 s with 2 threads and 1.1 s with 1."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(min(n, before))
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
 
 
 def balanced_weights(success: np.ndarray) -> np.ndarray:
