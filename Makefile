@@ -37,8 +37,10 @@ $(STAMP)/python: requirements.txt | $(PY) $(STAMP)/system
 	@touch $@
 python-deps: $(STAMP)/python
 
-# --- custom ROS interfaces (msg_defs/ -> w2e_msgs) built with rosidl into the venv -------
-$(STAMP)/interfaces: $(STAMP)/python $(wildcard msg_defs/*.txt msg_defs/msg/* msg_defs/srv/* msg_defs/action/* msg_defs/*.sh)
+# --- custom ROS interfaces (msg_defs/ -> w2e_msgs; msg_defs/upstream/ -> tf2_msgs, control_msgs,
+# franka_msgs: the upstream types the package index lacks) built with rosidl into the venv ---
+$(STAMP)/interfaces: $(STAMP)/python $(wildcard msg_defs/*.txt msg_defs/msg/* msg_defs/srv/* msg_defs/action/* msg_defs/*.sh) \
+    $(wildcard msg_defs/upstream/*/*.txt msg_defs/upstream/*/*.xml msg_defs/upstream/*/msg/* msg_defs/upstream/*/action/*)
 	bash msg_defs/build.sh $(VENV)
 	@touch $@
 interfaces: $(STAMP)/interfaces

@@ -1,6 +1,9 @@
 #!/usr/bin/env bash
 # Build the w2e_msgs interface package (this folder) with rosidl + plain CMake into a Python
-# virtual environment that holds the ROS 2 Jazzy wheels, so `import w2e_msgs.msg` works there.
+# virtual environment that holds the ROS 2 Jazzy wheels, so `import w2e_msgs.msg` works there;
+# and, the same way, the upstream interface packages of upstream/ that the package index lacks
+# (tf2_msgs, control_msgs, franka_msgs: only the types the stack uses, upstream/README.md),
+# each skipped where another install (a sourced ROS 2) already provides it.
 #
 #   bash msg_defs/build.sh [VENV]        (default: .venv next to msg_defs/)
 #
@@ -56,21 +59,44 @@ export _ROS_WHEELS_BOOTSTRAP_COMPLETE=1
 
 mkdir -p "$(dirname "$BUILD")"
 start=$(date +%s)
-if [ ! -f "$BUILD/build.ninja" ]; then
-  cmake -S "$HERE" -B "$BUILD" -G Ninja \
-    -DCMAKE_BUILD_TYPE=Release \
-    -DCMAKE_INSTALL_PREFIX="$VENV" \
-    -DPython3_EXECUTABLE="$PY" \
-    -DPython3_FIND_VIRTUALENV=ONLY \
-    -DBUILD_TESTING=OFF \
-    -Wno-dev >"$BUILD.configure.log" 2>&1 || {
-      mkdir -p "$BUILD"; tail -40 "$BUILD.configure.log" >&2; exit 1; }
-fi
-cmake --build "$BUILD" --target install -- -j"${W2E_BUILD_JOBS:-2}" >"$BUILD.build.log" 2>&1 || {
-  tail -60 "$BUILD.build.log" >&2; exit 1; }
+# build_package SOURCE_DIR BUILD_DIR: configure (once), build and install into the venv prefix
+build_package() {
+  local src="$1" build="$2"
+  if [ ! -f "$build/build.ninja" ]; then
+    cmake -S "$src" -B "$build" -G Ninja \
+      -DCMAKE_BUILD_TYPE=Release \
+      -DCMAKE_INSTALL_PREFIX="$VENV" \
+      -DPython3_EXECUTABLE="$PY" \
+      -DPython3_FIND_VIRTUALENV=ONLY \
+      -DBUILD_TESTING=OFF \
+      -Wno-dev >"$build.configure.log" 2>&1 || {
+        mkdir -p "$build"; tail -40 "$build.configure.log" >&2; return 1; }
+  fi
+  cmake --build "$build" --target install -- -j"${W2E_BUILD_JOBS:-2}" >"$build.build.log" 2>&1 || {
+    tail -60 "$build.build.log" >&2; return 1; }
+}
+
+# upstream packages first (w2e_msgs does not use them, but a later one may); one provided by
+# another install (its Python package outside this venv) is left alone
+for src in "$HERE"/upstream/*/; do
+  pkg="$(basename "$src")"
+  where=$(unset _ROS_WHEELS_BOOTSTRAP_COMPLETE; "$PY" -c \
+    "import importlib.util as u; s = u.find_spec('$pkg'); print(s.origin if s else '')" \
+    2>/dev/null || true)
+  if [ -n "$where" ] && [[ "$where" != "$VENV"/* ]]; then
+    echo "[w2e_msgs] $pkg: provided by $where, not built"
+    continue
+  fi
+  build_package "$src" "$(dirname "$BUILD")/$pkg" || exit 1
+done
+build_package "$HERE" "$BUILD" || exit 1
 
 # --- 4. check from the venv's Python (through its normal start-up) -----------------------
 unset _ROS_WHEELS_BOOTSTRAP_COMPLETE
 "$PY" -c 'import w2e_msgs.msg, w2e_msgs.srv, w2e_msgs.action; w2e_msgs.action.ExecuteInteraction.Goal()' || {
   echo "[w2e_msgs] built, but 'import w2e_msgs' fails in $PY" >&2; exit 1; }
+"$PY" -c 'from tf2_msgs.msg import TFMessage; from control_msgs.action import GripperCommand
+from franka_msgs.action import Grasp, Move; TFMessage(); GripperCommand.Goal(); Grasp.Goal()' || {
+  echo "[w2e_msgs] built, but tf2_msgs / control_msgs / franka_msgs do not import in $PY" >&2
+  exit 1; }
 echo "[w2e_msgs] installed into $VENV in $(( $(date +%s) - start )) s"
