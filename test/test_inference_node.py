@@ -174,6 +174,44 @@ def test_query_scores_equal_the_map_for_the_same_action(graph):
     assert len(q.query_similarities) == len(rows)
 
 
+@pytest.mark.parametrize("check_approach", [True, False])
+def test_the_stack_and_the_benchmark_pick_the_same_action_on_the_same_cloud(
+        graph, checkpoints, check_approach):
+    """The planner's manipulate (the node's ranked map, then the policy's choice) and the
+    benchmark's success probe (maps sampler) run one policy (w2e_ros.core.policy)."""
+    from types import SimpleNamespace
+
+    from w2e_ros.core.evaluate import SuccessProbe
+    from w2e_ros.core.feasibility import DEFAULT_CHECK
+    from w2e_ros.core.policy import ManipulatePolicy
+    from w2e_ros.ros.conversions import interaction_to_action
+
+    p, nrm = box_cloud(256, 6)
+    policy = ManipulatePolicy(DEFAULT_CHECK if check_approach else None, candidates=64)
+    res = graph.call(graph.predict, PredictMaps.Request(
+        clouds=[arrays_to_cloud(p, nrm, frame_id="world")], primitive="pull",
+        num_directions=16, num_best=policy.num_ranked, seed=11))
+    assert res.success, res.message
+    acts = [interaction_to_action(a) for a in res.maps[0].best_actions]
+    choice = policy.choose(p, np.array([a.point for a in acts]), np.array([a.up for a in acts]),
+                           np.array([a.forward for a in acts]), "pull")
+    # with the check, the best actions on this cloud run into it: the choice skips some
+    assert choice.index > 0 if check_approach else choice.index == 0
+    stack = acts[choice.index]
+
+    executed = []
+    world = SimpleNamespace(
+        observe=lambda t: SimpleNamespace(points=p, normals=nrm, movable=None),
+        execute=lambda t, a: executed.append(a) or SimpleNamespace(success=True, valid=True))
+    probe = SuccessProbe(world, [0], "pull", dirs_per_point=16, seed=11, sampler="maps",
+                         check_approach=check_approach, approach_candidates=64)
+    probe.outcomes(load_model(checkpoints["pull"], "cpu")[0])
+    (bench,) = executed
+    np.testing.assert_allclose(bench.point, stack.point, atol=1e-6)
+    np.testing.assert_allclose(bench.up, stack.up, atol=1e-6)
+    np.testing.assert_allclose(bench.forward, stack.forward, atol=1e-6)
+
+
 def test_clouds_of_other_sizes_are_served(graph):
     res = graph.call(graph.predict, predict_request([cloud_msg(100), cloud_msg(1000)]))
     assert res.success, res.message

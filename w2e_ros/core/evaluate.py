@@ -17,12 +17,12 @@ from typing import Any
 import numpy as np
 import torch
 
-from w2e_ros.core.actions import encode_rotation
 from w2e_ros.core.data import InteractionData
 from w2e_ros.core.explore import Candidates, map_candidates, sample_candidates
-from w2e_ros.core.feasibility import first_clear
+from w2e_ros.core.feasibility import DEFAULT_CHECK, FLYING
 from w2e_ros.core.metrics import affordance_fscore_from_probs, success_rate
 from w2e_ros.core.model import W2EModel
+from w2e_ros.core.policy import ManipulatePolicy, score_actions
 from w2e_ros.core.predict import FEATURES, encoder_key, predict_interactions
 
 log = logging.getLogger("w2e.evaluate")
@@ -58,10 +58,11 @@ class SuccessProbe:
     training data and the exploration are drawn from, on the movable parts when
     ``use_mask``), or ``maps`` (what the stack's ``manipulate`` scores: every point of the
     movable parts x ``dirs_per_point`` frames uniform over the hemisphere; the reference's
-    argmax of affordance x movable mask). The model executes its best one; with
+    argmax of affordance x movable mask). The model's action is the stack's manipulate
+    policy (:class:`w2e_ros.core.policy.ManipulatePolicy`): its best one; with
     ``check_approach`` the best of its ``approach_candidates`` highest whose approach does not
-    run into the observed cloud (the stack's manipulate: none clear, the object is not touched
-    and counts as a failure).
+    run into the observed cloud (none clear: the object is not touched and counts as a
+    failure).
     """
 
     world: Any  # ExplorationWorld
@@ -87,29 +88,29 @@ class SuccessProbe:
             for c, m in zip(self.clouds, masks, strict=True)]
         self._outcomes: dict[tuple[int, int], tuple[bool, bool]] = {}
 
+    @property
+    def policy(self) -> ManipulatePolicy:
+        """The stack's manipulate policy with the flying hand (``w2e_ros.core.policy``)."""
+        return ManipulatePolicy(DEFAULT_CHECK if self.check_approach else None, FLYING,
+                                self.approach_candidates)
+
     @torch.no_grad()
     def outcomes(self, model: W2EModel) -> list[tuple[bool, bool]]:
-        """(success, valid) of the highest-affordance action on every target, in order."""
+        """(success, valid) of the action the policy picks on every target, in order."""
         model.eval()
         enc = encoder_key(model)
         feats = FEATURES.get(model, enc, [c.points for c in self.clouds])
+        policy = self.policy
         out = []
         for k, (t, cloud, cand) in enumerate(zip(self.targets, self.clouds, self.candidates,
                                                  strict=True)):
-            f = feats[k][torch.from_numpy(cand.point_index).to(model.device)]
-            a = torch.from_numpy(encode_rotation(cand.up, cand.forward)).to(model.device)
-            logit = model.aff_head(f, a)
-            i = int(torch.argmax(logit))
-            if self.check_approach:
-                top = torch.argsort(logit, descending=True, stable=True)[
-                    :self.approach_candidates].cpu().numpy()
-                pts = cloud.points[cand.point_index[top]]
-                j = first_clear(cloud.points, pts, cand.up[top], cand.forward[top],
-                                self.primitive)
-                if j < 0:  # the stack leaves such an object untouched: a failure
-                    out.append((False, False))
-                    continue
-                i = int(top[j])
+            logit, _ = score_actions(model, feats[k], cand.point_index, cand.up, cand.forward,
+                                     similarity=False)
+            i = policy.pick(logit.cpu().numpy(), cloud.points, cand.point_index, cand.up,
+                            cand.forward, self.primitive)
+            if i < 0:  # the stack leaves such an object untouched: a failure
+                out.append((False, False))
+                continue
             if (k, i) not in self._outcomes:
                 res = self.world.execute(t, cand.action(cloud, i, self.primitive))
                 self._outcomes[(k, i)] = (bool(res.success), bool(res.valid))

@@ -40,6 +40,7 @@ from w2e_ros.core.explore import Candidates, Executed, map_candidates
 from w2e_ros.core.finetune import W2EExplorer, similarity_is_balanced
 from w2e_ros.core.model import W2EModel, default_device, load_model, save_model
 from w2e_ros.core.pointcloud import check_cloud, fps_indices
+from w2e_ros.core.policy import best_first, score_map
 from w2e_ros.core.primitives import BASE_PRIMITIVES, PRIMITIVES, Action
 from w2e_ros.paths import default_checkpoint, default_replay_pack
 from w2e_ros.ros.conversions import (
@@ -362,11 +363,7 @@ class InferenceNode(Node):
         """All points x k sampled frames -> per-point maps and the extreme actions."""
         n = len(cloud.points)
         cand = map_candidates(cloud, k, rng)  # point-major (n * k,)
-        pidx, up, fwd = cand.point_index, cand.up, cand.forward
-        acts = torch.from_numpy(np.concatenate([up, fwd], axis=1).reshape(n, k, 6))
-        logit, sim = model.score_map(feats[None], acts[None].to(model.device))
-        aff = torch.sigmoid(logit)[0].reshape(-1).cpu().numpy()  # (n * k,)
-        sim = sim[0].reshape(-1).cpu().numpy()
+        aff, sim = score_map(model, feats, cand.up, cand.forward, k)  # (n * k,) each
         point_aff = aff.reshape(n, k).max(axis=1)
         point_sim = sim.reshape(n, k).mean(axis=1)
 
@@ -377,10 +374,9 @@ class InferenceNode(Node):
         # with the simulator's movable mask, the best and least familiar actions are taken on
         # movable parts (the reference's argmax of affordance x movable mask); the maps
         # themselves cover every point
-        on_part = (np.ones(len(aff), bool) if cloud.movable is None
-                   else cloud.movable[pidx])
-        best = np.argsort(np.where(on_part, -aff, np.inf), kind="stable")[:nbest]
-        least = np.argsort(np.where(on_part, sim, np.inf), kind="stable")[:nbest]
+        on_part = None if cloud.movable is None else cloud.movable[cand.point_index]
+        best = best_first(aff, on_part)[:nbest]
+        least = best_first(-sim, on_part)[:nbest]
         out = AffordanceMap(header=msg.header, object_id=object_id, primitive=primitive)
         out.cloud = arrays_to_cloud(
             cloud.points, cloud.normals,
