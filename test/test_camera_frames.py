@@ -4,9 +4,9 @@ The simulator's camera sees two cabinets on a table; the same hits are published
 Azure Kinect and RealSense drivers do (an H x W grid in the optical frame, z forward, x
 right, y down, NaN where the depth is missing, x y z + packed float32 rgb in PCL's 32-byte
 point layout), built here with plain sensor_msgs. The segmentation node, given the camera's
-pose (static_transform_publisher's x y z qx qy qz qw), must give the objects the world-frame
-cloud of the same hits gives. tf2_ros is not in the venv, so the static pose is the path that
-runs here; the rule that picks TF or the static pose is tested with a stand-in lookup.
+pose (static_transform_publisher's x y z qx qy qz qw) or reading it from the robot's TF tree
+(published by a separate process, a static chain with a moving joint, at the cloud's stamp),
+must give the objects the world-frame cloud of the same hits gives.
 """
 
 from __future__ import annotations
@@ -30,7 +30,6 @@ from w2e_ros.ros.transforms import (  # noqa: E402
     FrameError,
     RigidTransform,
     parse_camera_pose,
-    tf_available,
 )
 
 OPTICAL_FRAME = "camera_color_optical_frame"
@@ -193,12 +192,6 @@ def test_a_malformed_transform_parameter_stops_the_node_at_startup(context, para
         _node(context, **params)
 
 
-@pytest.mark.skipif(tf_available(), reason="tf2_ros is importable here")
-def test_tf_source_without_tf2_ros_is_refused_at_startup(context):
-    with pytest.raises(ValueError, match="tf2_ros is not importable"):
-        _node(context, transform_source="tf")
-
-
 def test_clouds_without_xyz_or_without_a_transform_are_logged_and_skipped(scene, context,
                                                                            capfd):
     node = _node(context, camera_pose=scene.camera_pose(), camera_frame=OPTICAL_FRAME)
@@ -221,33 +214,119 @@ def test_clouds_without_xyz_or_without_a_transform_are_logged_and_skipped(scene,
     bare.destroy_node()
 
 
-def test_tf_is_preferred_and_the_static_pose_is_the_fallback_only_when_set():
+def test_tf_auto_falls_back_to_the_static_pose_and_tf_alone_does_not():
     static = RigidTransform.from_pose([1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0])
     from_tf = RigidTransform.from_pose([0.0, 2.0, 0.0], [0.0, 0.0, 0.0, 1.0])
     calls, warnings = [], []
-    tf_up = True
+    tf_up, known = True, {OPTICAL_FRAME}
 
-    def lookup(frame, stamp):  # stands in for TfLookup, which needs tf2_ros
-        calls.append(frame)
+    def lookup(frame, stamp, wait=True):  # stands in for TfLookup
+        calls.append((frame, wait))
         if not tf_up:
-            raise FrameError(f"no transform from {frame!r} to 'world' in TF")
+            raise FrameError(f"TF: no transform from {frame!r} to 'world'")
         return from_tf
 
-    frames = CameraFrames("world", "tf", static, OPTICAL_FRAME, lookup, warnings.append)
+    frames = CameraFrames("world", "auto", static, OPTICAL_FRAME, lookup, warnings.append,
+                          knows=known.__contains__)
     assert frames.transform_for("world") is None and frames.transform_for("") is None
-    assert frames.transform_for(OPTICAL_FRAME) is from_tf and calls == [OPTICAL_FRAME]
+    assert frames.transform_for(OPTICAL_FRAME) is from_tf
+    assert calls == [(OPTICAL_FRAME, True)]
     tf_up = False
     assert frames.transform_for(OPTICAL_FRAME) is static
     assert "using the static camera_pose" in warnings[-1]
-    with pytest.raises(FrameError, match="in TF"):  # the static pose is for another frame
+    known.clear()  # a frame TF never named: the static pose without waiting for TF
+    calls.clear()
+    assert frames.transform_for(OPTICAL_FRAME) is static and calls == [(OPTICAL_FRAME, False)]
+    with pytest.raises(FrameError, match="TF: no transform"):  # static is for another frame
         frames.transform_for("other_frame")
-    no_static = CameraFrames("world", "tf", None, "", lookup)
-    with pytest.raises(FrameError, match="no transform from 'cam' to 'world' in TF"):
-        no_static.transform_for("cam")
+    # tf: the robot's tree only, a static pose set too is not used
+    strict = CameraFrames("world", "tf", static, OPTICAL_FRAME, lookup)
+    with pytest.raises(FrameError, match="TF: no transform from 'camera_color_optical_frame'"):
+        strict.transform_for(OPTICAL_FRAME)
     # static only: TF is never asked
     calls.clear()
     only = CameraFrames("world", "static", static, "", lookup)
     assert only.transform_for("any_camera") is static and not calls
+
+
+def test_the_camera_pose_from_tf_published_by_another_process(scene, tmp_path):
+    """transform_source tf: a robot_state_publisher-like process publishes world ->
+    panda_link0 -> (moving joint) panda_link1 -> camera_link -> the optical frame; a cloud
+    stamped between two of the moving joint's samples segments as the world-frame cloud
+    (the transform taken at its stamp: the latest would be 0.3 m off); a cloud in a frame TF
+    does not have is skipped with the missing frame named, and the node goes on."""
+    import json
+    import subprocess
+    import sys
+    import threading
+    from pathlib import Path
+
+    from rclpy.executors import MultiThreadedExecutor
+    from scipy.spatial.transform import Rotation
+
+    from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, ros_env, stop_process
+
+    clean_shm_at_exit()
+
+    def matrix(pose):
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = Rotation.from_quat(pose[3:]).as_matrix(), pose[:3]
+        return T
+
+    def pose(T):
+        return [*map(float, T[:3, 3]), *map(float, Rotation.from_matrix(T[:3, :3]).as_quat())]
+
+    base = [0.95, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0]
+    t0 = 1_700_000_000  # the clouds' stamp (s); the joint moves 0.3 m/s along z from t0 - 1
+
+    def joint(t):  # panda_link0 -> panda_link1 at t s after t0
+        return [0.0, 0.0, 0.333 + 0.3 * t, 0.0, 0.0, np.sin(0.2), np.cos(0.2)]
+
+    optical = matrix(scene.camera_pose())  # what the chain must give at the cloud's stamp
+    mount = np.linalg.inv(matrix(base) @ matrix(joint(0.25))) @ optical
+    spec = {"static": [["world", "panda_link0", *base], ["panda_link1", "camera_link",
+                                                         *pose(mount)],
+                       ["camera_link", OPTICAL_FRAME, 0, 0, 0, 0, 0, 0, 1]],
+            "dynamic": [["panda_link0", "panda_link1", int((t0 + t) * 1e9), *joint(t)]
+                        for t in (-1.0, 0.0, 0.5, 1.0)],
+            "rate_hz": 10.0}
+    domain = pick_domain_id(salt=59)
+    proc = subprocess.Popen(
+        [sys.executable, str(Path(__file__).with_name("tf_tree.py")), json.dumps(spec)],
+        env=ros_env(domain_id=domain, log_dir=tmp_path / "ros_log"), start_new_session=True,
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain)
+    exe = MultiThreadedExecutor(num_threads=2, context=ctx)
+    node = None
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        node = _node(ctx, num_points=ALL_POINTS, transform_source="tf", tf_timeout_s=20.0,
+                     camera_pose=[0.0, 0.0, 5.0, 0.0, 0.0, 0.0, 1.0])  # not used with tf
+        exe.add_node(node)
+        threading.Thread(target=exe.spin, daemon=True).start()
+        ref = _node(ctx, num_points=ALL_POINTS).process(scene.world_cloud(labels=True))
+        msg = scene.organised_cloud(labels=True)
+        msg.header.stamp.sec, msg.header.stamp.nanosec = t0, 250_000_000  # between samples
+        out = node.process(msg)
+        assert [o.id for o in out.objects] == [1, 2]
+        _assert_same_objects(out, ref)
+        # the moving joint's latest sample (1 s) would put the camera 0.225 m higher
+        latest = node.frames.lookup(OPTICAL_FRAME, None)
+        assert latest.translation[2] == pytest.approx(optical[2, 3] + 0.225, abs=1e-6)
+        # a frame the tree lacks: skipped, named, and the node goes on
+        node.frames.lookup.timeout_s = 0.2  # the tree is complete: no need to wait 20 s
+        other = scene.organised_cloud(labels=True, frame_id="camera_depth_optical_frame")
+        with pytest.raises(FrameError, match="frame 'camera_depth_optical_frame' is not in TF"):
+            node.process(other)
+        node._on_cloud(other)  # logged, not raised
+        assert len(node.process(msg).objects) == 2
+    finally:
+        exe.shutdown()
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+        stop_process(proc)
 
 
 def _ros_arg(value) -> str:

@@ -6,10 +6,11 @@ later still gets the latest objects). The work is done by the ROS-free
 :class:`w2e_ros.ros.segmentation.Segmenter`, in the robot frame ``frame_id``.
 
 A cloud in another frame (a real camera's optical frame: organised, NaN where the depth is
-missing, packed ``rgb``) is moved into ``frame_id`` first, by TF or by the static
-``camera_pose`` (:mod:`w2e_ros.ros.transforms`); its invalid points are dropped, its colours
-ignored. A malformed cloud (no x/y/z, truncated data, ...) or one without a transform is
-logged with the reason and skipped; the node keeps running.
+missing, packed ``rgb``) is moved into ``frame_id`` first, by the robot's TF tree (``/tf``,
+``/tf_static``, at the cloud's stamp: :mod:`w2e_ros.ros.tf`) or by the static ``camera_pose``
+(:mod:`w2e_ros.ros.transforms`); its invalid points are dropped, its colours ignored. A malformed
+cloud (no x/y/z, truncated data, ...) or one without a transform is logged with the reason and
+skipped; the node keeps running.
 """
 
 from __future__ import annotations
@@ -40,7 +41,6 @@ from w2e_ros.ros.transforms import (
     CameraFrames,
     TfLookup,
     parse_camera_pose,
-    tf_available,
 )
 
 LABEL_FIELD = "object_id"
@@ -53,15 +53,21 @@ class SegmentationSettings:
     frame_id: str = param("world", "robot frame: clouds are moved into it, segmented and "
                           "published in it ('': any cloud as it is, no transform)")
     transform_source: str = param(
-        "auto", "camera-to-frame_id transform: tf (looked up in TF, camera_pose the fallback), "
-        "static (camera_pose), auto (tf where tf2_ros is importable, else static)")
+        "auto", "camera-to-frame_id transform: tf (the robot's TF tree on /tf and /tf_static at "
+        "the cloud's stamp; no transform: the cloud is skipped, the missing edge named), static "
+        "(camera_pose only, TF not listened to), auto (TF, camera_pose when TF has none)")
     camera_pose: list[float] = param(
         [], "static pose of the camera's cloud frame in frame_id, x y z qx qy qz qw as "
         "static_transform_publisher takes it ([]: none)")
     camera_frame: str = param(
         "", "the cloud frame camera_pose is for, e.g. camera_color_optical_frame ('': any "
         "frame other than frame_id)")
-    tf_timeout_s: float = param(0.2, "how long one TF lookup may wait (s)", min=0.0)
+    tf_timeout_s: float = param(0.2, "how long one TF lookup may wait for transforms not yet "
+                                "received (s)", min=0.0)
+    tf_tolerance_s: float = param(
+        0.1, "a cloud stamped outside a moving TF edge's history by at most this takes the "
+        "edge's nearest transform (s; inside it, transforms are interpolated)", min=0.0)
+    tf_cache_s: float = param(10.0, "history kept per moving TF edge (s)", min=0.1)
     use_labels: bool = param(True, "use the cloud's object_id field when it has one")
     forward_movable: bool = param(
         True, "carry the cloud's movable field (the simulator's ground-truth movable parts) "
@@ -112,19 +118,19 @@ class SegmentationNode(Node):
             raise ValueError(f"transform_source must be one of {TRANSFORM_SOURCES}, got "
                              f"{s.transform_source!r}")
         static = parse_camera_pose(s.camera_pose)
-        use_tf = bool(s.frame_id) and (
-            s.transform_source == "tf" or (s.transform_source == "auto" and tf_available()))
-        if s.transform_source == "tf" and not tf_available():
-            raise ValueError("transform_source is 'tf' but tf2_ros is not importable (it comes "
-                             "with a full ROS 2 install); use 'static' with camera_pose")
-        lookup = TfLookup(self, s.frame_id, s.tf_timeout_s) if use_tf else None
+        use_tf = bool(s.frame_id) and s.transform_source in ("tf", "auto")
+        lookup = (TfLookup(self, s.frame_id, s.tf_timeout_s, s.tf_tolerance_s, s.tf_cache_s)
+                  if use_tf else None)
         log = self.get_logger()
-        where = ("TF" + (", camera_pose as the fallback" if static else "") if lookup
-                 else "camera_pose" if static else "none: clouds must be in frame_id")
+        where = ("TF (/tf, /tf_static)" + (", camera_pose as the fallback"
+                                          if static and s.transform_source == "auto" else "")
+                 if lookup else "camera_pose" if static else "none: clouds must be in frame_id")
         log.info(f"clouds in other frames than {s.frame_id!r}: transform from {where}"
                  if s.frame_id else "frame_id is '': clouds are segmented in their own frame")
-        return CameraFrames(s.frame_id, "tf" if lookup else "static", static, s.camera_frame,
-                            lookup, warn=lambda m: log.warning(m, throttle_duration_sec=10.0))
+        return CameraFrames(s.frame_id, s.transform_source if lookup else "static", static,
+                            s.camera_frame, lookup,
+                            warn=lambda m: log.warning(m, throttle_duration_sec=10.0),
+                            knows=lookup.knows if lookup else None)
 
     def process(self, msg: PointCloud2) -> SegmentedObjects:
         """Segment one cloud message; raises CloudFormatError / ValueError for a bad one

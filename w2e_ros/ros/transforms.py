@@ -1,4 +1,4 @@
-"""Camera clouds into the robot frame: a static camera pose, or a TF lookup on a full ROS install.
+"""Camera clouds into the robot frame: from the robot's TF tree or a static camera pose.
 
 A real depth camera (Azure Kinect, RealSense) publishes its cloud in its optical frame (z
 forward, x right, y down); the segmentation and everything after it work in the robot's frame
@@ -6,20 +6,20 @@ forward, x right, y down); the segmentation and everything after it work in the 
 transform takes it there:
 
 * the cloud is already in the robot frame (or has no frame): none;
-* ``tf`` (or ``auto`` where ``tf2_ros`` is importable): looked up in TF at the cloud's stamp,
-  with a timeout; when the lookup fails, the static ``camera_pose`` is used if the user set
-  one, otherwise the cloud is refused with a :class:`FrameError` that names both frames;
-* ``static`` (or ``auto`` without ``tf2_ros``, as in the venv): the static ``camera_pose``,
-  given as ``static_transform_publisher`` takes it (x y z qx qy qz qw: the pose of the camera
-  frame in the robot frame, which maps camera points into the robot frame).
+* ``tf``: looked up in TF (:mod:`w2e_ros.ros.tf`: ``/tf`` and ``/tf_static``) at the cloud's
+  stamp, waiting up to a timeout; no transform is a :class:`FrameError` naming the missing
+  edge or the stamp that is too old (no fallback: the robot's tree is the one source);
+* ``auto``: TF as above, and when TF has no transform, the static ``camera_pose`` if the user
+  set one for that frame (a frame TF has never heard of falls back at once, without waiting);
+* ``static``: the static ``camera_pose`` only, given as ``static_transform_publisher`` takes it
+  (x y z qx qy qz qw: the pose of the camera frame in the robot frame, which maps camera
+  points into the robot frame).
 
-The geometry here is plain numpy; only :class:`TfLookup` needs tf2_ros, imported when it is
-built, so this module imports where tf2_ros is not installed.
+The geometry here is plain numpy; :class:`TfLookup` wraps a :class:`w2e_ros.ros.tf.TfListener`.
 """
 
 from __future__ import annotations
 
-import importlib.util
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -33,11 +33,6 @@ TRANSFORM_SOURCES = ("auto", "tf", "static")
 
 class FrameError(CloudFormatError):
     """A cloud in a frame the node has no transform for into the robot frame (and why)."""
-
-
-def tf_available() -> bool:
-    """Whether ``tf2_ros`` can be imported (a full ROS 2 install; not the venv's wheels)."""
-    return importlib.util.find_spec("tf2_ros") is not None
 
 
 def rotation_from_quaternion(q: Sequence[float]) -> np.ndarray:
@@ -99,37 +94,42 @@ def parse_camera_pose(values: Sequence[float]) -> RigidTransform | None:
 
 
 def transform_from_msg(msg) -> RigidTransform:
-    """geometry_msgs/Transform (what a TF lookup returns, ``.transform``) -> RigidTransform."""
+    """geometry_msgs/Transform (``TransformStamped.transform``) -> RigidTransform."""
     t, q = msg.translation, msg.rotation
     return RigidTransform.from_pose((t.x, t.y, t.z), (q.x, q.y, q.z, q.w))
 
 
-Lookup = Callable[[str, object], RigidTransform]
-"""(source frame, header stamp) -> transform into the target frame; raises FrameError."""
+Lookup = Callable[..., RigidTransform]
+"""(source frame, header stamp, wait=True) -> transform into the target frame; raises
+FrameError. ``wait=False``: answer from what has arrived, at once."""
 
 
 class CameraFrames:
     """Which transform takes a cloud in ``frame`` into ``target_frame`` (see the module doc).
 
-    ``lookup`` is the TF lookup (:class:`TfLookup`; None where TF is not used), ``warn`` gets
-    the note that a failed lookup fell back to the static pose.
+    ``lookup`` is the TF lookup (:class:`TfLookup`; None where TF is not used), ``knows(frame)``
+    whether TF has heard of a frame at all (auto: a frame it has not falls back to the static
+    pose without waiting), ``warn`` gets the note that a failed lookup fell back to the
+    static pose.
     """
 
     def __init__(self, target_frame: str, source: str = "auto",
                  static_pose: RigidTransform | None = None, static_frame: str = "",
                  lookup: Lookup | None = None,
-                 warn: Callable[[str], None] | None = None) -> None:
+                 warn: Callable[[str], None] | None = None,
+                 knows: Callable[[str], bool] | None = None) -> None:
         if source not in TRANSFORM_SOURCES:
             raise ValueError(f"transform_source must be one of {TRANSFORM_SOURCES}, got "
                              f"{source!r}")
-        if source == "tf" and lookup is None:
-            raise ValueError("transform_source 'tf' needs a TF lookup")
+        if source in ("tf", "auto") and lookup is None and target_frame:
+            raise ValueError(f"transform_source {source!r} needs a TF lookup")
         self.target_frame = target_frame
         self.source = source
         self.static_pose = static_pose
         self.static_frame = static_frame
         self.lookup = lookup if source in ("auto", "tf") else None
         self.warn = warn or (lambda _msg: None)
+        self.knows = knows or (lambda _frame: True)
 
     def uses_tf(self) -> bool:
         """Whether clouds in other frames are looked up in TF."""
@@ -141,10 +141,15 @@ class CameraFrames:
         if not self.target_frame or frame in ("", self.target_frame):
             return None
         if self.lookup is not None:
+            static = self._static_for(frame) if self.source == "auto" else None
             try:
-                return self.lookup(frame, stamp)
+                # auto with a static pose for a frame TF has never named: no wait for TF
+                wait = static is None or self.knows(frame)
+                return self.lookup(frame, stamp, wait=wait)
             except FrameError as err:
-                static = self._static_for(frame)
+                if static is None and self.source == "auto" and self.static_pose is None:
+                    raise FrameError(f"{err}; or set camera_pose (x y z qx qy qz qw of the "
+                                     f"camera frame in {self.target_frame!r})") from None
                 if static is None:
                     raise
                 self.warn(f"{err}; using the static camera_pose instead")
@@ -159,8 +164,7 @@ class CameraFrames:
         raise FrameError(
             f"cloud is in frame {frame!r}, not {self.target_frame!r}, and there is no "
             f"transform: set camera_pose (x y z qx qy qz qw of the camera frame in "
-            f"{self.target_frame!r})" + ("" if tf_available() else
-                                         ", tf2_ros is not importable here"))
+            f"{self.target_frame!r}) or transform_source tf / auto")
 
     def _static_for(self, frame: str) -> RigidTransform | None:
         if self.static_pose is None or (self.static_frame and frame != self.static_frame):
@@ -169,35 +173,34 @@ class CameraFrames:
 
 
 class TfLookup:
-    """TF lookups into ``target_frame`` for a node (tf2_ros Buffer + TransformListener).
+    """TF lookups into ``target_frame`` for a node (:class:`w2e_ros.ros.tf.TfListener` on
+    ``/tf`` and ``/tf_static``).
 
-    The listener's subscriptions are in a reentrant callback group: a lookup that waits (up to
-    ``timeout_s``) in a callback needs a multi-threaded executor so they can run meanwhile.
-    Raises ImportError where tf2_ros is not installed.
+    A lookup waits up to ``timeout_s`` for transforms not yet received; a stamp outside an
+    edge's history by at most ``tolerance_s`` takes its nearest transform. The listener's
+    subscriptions are in a reentrant callback group: a lookup that waits in a callback needs a
+    multi-threaded executor so they can run meanwhile.
     """
 
-    def __init__(self, node, target_frame: str, timeout_s: float) -> None:
-        import tf2_ros
-        from rclpy.duration import Duration
+    def __init__(self, node, target_frame: str, timeout_s: float, tolerance_s: float = 0.0,
+                 cache_s: float = 10.0) -> None:
+        from w2e_ros.ros.tf import TfListener
 
         self.target_frame = target_frame
         self.timeout_s = float(timeout_s)
-        self._timeout = Duration(seconds=self.timeout_s)
-        self._error = tf2_ros.TransformException
-        self.buffer = tf2_ros.Buffer()
-        self.listener = tf2_ros.TransformListener(self.buffer, node)
+        self.tolerance_s = float(tolerance_s)
+        self.listener = TfListener(node, cache_s=cache_s)
+        self.buffer = self.listener.buffer
 
-    def __call__(self, frame: str, stamp=None) -> RigidTransform:
-        from rclpy.time import Time
+    def knows(self, frame: str) -> bool:
+        """Whether TF has named ``frame`` (as a child or a parent) so far."""
+        return self.buffer.knows(frame)
 
-        when = Time.from_msg(stamp) if stamp is not None else Time()  # 0: the latest
+    def __call__(self, frame: str, stamp=None, wait: bool = True) -> RigidTransform:
+        from w2e_ros.ros.tf import TfError
+
         try:
-            msg = self.buffer.lookup_transform(self.target_frame, frame, when,
-                                               timeout=self._timeout)
-        except self._error as err:
-            raise FrameError(
-                f"no transform from {frame!r} to {self.target_frame!r} in TF within "
-                f"{self.timeout_s:g} s ({type(err).__name__}: {err}); is the camera's "
-                f"transform published (static_transform_publisher, robot_state_publisher)?"
-            ) from err
-        return transform_from_msg(msg.transform)
+            return self.listener.lookup(self.target_frame, frame, stamp,
+                                        self.timeout_s if wait else 0.0, self.tolerance_s)
+        except TfError as err:
+            raise FrameError(f"TF: {err}") from None
