@@ -5,9 +5,12 @@ ROS-backed halves: :class:`RosModel` (the inference node's ``predict_maps`` / ``
 and :class:`RosWorld` (object clouds from the segmentation node's ``objects``, scenes loaded
 through the bridge's ``load_scene``, interactions run by the executor's
 ``execute_interaction`` action). The service and the action share one implementation
-(:meth:`PlannerNode.run_explore`); the action adds feedback per interaction and cancel between
-interactions. ``manipulate`` executes, per object, the action with the highest predicted
-affordance. Progress goes out on ``exploration_progress`` after every step.
+(:class:`w2e_ros.ros.explore_service.ExploreService`: request checks, session resume, the
+loop); the action adds feedback per interaction and cancel between interactions.
+``manipulate`` executes, per object, the action the manipulate policy picks
+(``w2e_ros.core.policy``: the highest predicted affordance that passes the checks below).
+Progress goes out on ``exploration_progress`` after every step. This node holds the clients
+and the waits on the other nodes (``w2e_ros.ros.futures.wait_future``).
 
 With ``check_approach`` (on by default) both act only where the hand's approach does not run
 into the object's observed cloud (``w2e_ros.core.feasibility``): manipulate takes the best of
@@ -33,7 +36,7 @@ import os
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -42,9 +45,7 @@ from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.action.server import ServerGoalHandle
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
-from rclpy.task import Future
 from rclpy.time import Time
-from sensor_msgs.msg import PointCloud2
 from w2e_msgs.action import ExecuteInteraction
 from w2e_msgs.action import Explore as ExploreAction
 from w2e_msgs.msg import (
@@ -57,24 +58,24 @@ from w2e_msgs.msg import (
 from w2e_msgs.srv import Explore, LoadScene, Manipulate, PredictMaps, UpdateModel
 
 from w2e_ros.core.categories import load_categories
-from w2e_ros.core.config import ExploreConfig
-from w2e_ros.core.explore import Candidates, Executed, StepRecord, explore
-from w2e_ros.core.feasibility import DEFAULT_CHECK, Arm, first_feasible
+from w2e_ros.core.feasibility import DEFAULT_CHECK, Arm
 from w2e_ros.core.kinematics import BASE_POSE_DESCRIPTION, DEFAULT_BASE_POSE
-from w2e_ros.core.primitives import PRIMITIVES, Action, TrialResult
-from w2e_ros.core.session_log import SessionRun, open_session
+from w2e_ros.core.policy import ManipulatePolicy
 from w2e_ros.core.sim_world import stable_seed
-from w2e_ros.core.strategies import Scored, get_strategy
+from w2e_ros.core.strategies import get_strategy
 from w2e_ros.ros.action_client import LockedActionClient
-from w2e_ros.ros.conversions import (
-    action_to_interaction,
-    interaction_to_action,
-    outcome_to_trial_result,
-    trial_result_to_outcome,
+from w2e_ros.ros.conversions import interaction_to_action
+from w2e_ros.ros.explore_service import (  # noqa: F401 - RosModel, RosWorld: the planner's halves
+    BUSY,
+    ExploreService,
+    ObservedCloud,
+    RosModel,
+    RosWorld,
+    check_primitive,
 )
+from w2e_ros.ros.futures import StackError, wait_future
 from w2e_ros.ros.params import declare_typed_parameters, describe, param
 from w2e_ros.ros.peers import PeerWatch
-from w2e_ros.ros.pointcloud import arrays_to_cloud, cloud_to_arrays, movable_mask
 from w2e_ros.ros.qos import LATCHED_QOS, RELIABLE_QOS
 from w2e_ros.ros.spin import run_node
 from w2e_ros.ros.state import scoped_dir, state_scope
@@ -144,207 +145,9 @@ def default_log_dir() -> Path:
     return Path(data) / "w2e" / "exploration"
 
 
-BUSY = "busy: another explore/manipulate is running"
-
-
-POLL_S = 0.5  # s between two looks at the server of a request in flight
-
 # the servers the planner waits on: service / action name -> the node that serves it
 PEERS = {"predict_maps": "inference_node", "update_model": "inference_node",
          "load_scene": "sim_bridge", "execute_interaction": "executor"}
-
-
-class StackError(RuntimeError):
-    """Another node did not answer, answered with an error, or is gone."""
-
-
-def wait_future(future: Future, timeout: float, what: str,
-                alive: Callable[[], bool] | None = None,
-                check: Callable[[], str | None] | None = None) -> Any:
-    """Block this (executor) thread until another thread completes ``future``; give up after
-    ``timeout``, at once when ``check()`` gives a reason (the server died or restarted:
-    :class:`w2e_ros.ros.peers.PeerWatch`), or once ``alive()`` says the server has left the
-    graph (a server that does not announce itself: ~20 s after a SIGKILL)."""
-    done = threading.Event()
-    future.add_done_callback(lambda _f: done.set())
-    deadline = time.monotonic() + timeout
-    gone = 0
-    while not done.wait(min(POLL_S, max(0.0, deadline - time.monotonic()))):
-        if time.monotonic() >= deadline:
-            raise StackError(f"{what}: no answer within {timeout:.0f} s (is the node running?)")
-        why = check() if check is not None else None
-        if why:
-            raise StackError(f"{what}: {why}")
-        gone = gone + 1 if alive is not None and not alive() else 0
-        if gone >= 2 / POLL_S:
-            raise StackError(f"{what}: the server left the ROS graph while answering (did its "
-                             "node die?)")
-    if future.exception() is not None:
-        raise StackError(f"{what}: {future.exception()}")
-    return future.result()
-
-
-@dataclass
-class ObservedCloud:
-    """A segmented object cloud as the core consumes it, with the message to forward."""
-
-    points: np.ndarray  # (N, 3)
-    normals: np.ndarray  # (N, 3)
-    msg: PointCloud2
-    object_id: int
-    movable: np.ndarray | None = None  # (N,) simulator ground truth: candidates favour it
-
-
-class RosWorld:
-    """``ExplorationWorld`` over the stack: targets are scene object ids."""
-
-    def __init__(self, node: PlannerNode, run: SessionRun | None = None,
-                 instance_of: dict[int, int] | None = None) -> None:
-        self.node = node
-        self.s = node.settings
-        self.run = run  # every executed interaction is appended here before it is used
-        self.instance_of = instance_of or {}  # object id -> category instance (logged)
-        self.seen_after: dict[int, Time] = {}  # object -> earliest acceptable frame stamp
-        # every object's next frame is taken after the latest interaction, not only after its
-        # own: a frame taken between two interactions of a round shows the scene in a state
-        # that depends on timing, and one object's moved part can occlude another
-        self.latest_interaction: Time | None = None
-        self.outcomes: list[InteractionOutcome] = []  # of this call, in execution order
-        self.last_cloud: dict[int, ObservedCloud] = {}
-
-    def observe(self, target: int) -> ObservedCloud:
-        """The object's cloud in a frame taken after its last interaction. An object the
-        segmentation loses after we touched it (moved out of view, occluded) keeps its last
-        cloud rather than ending the exploration of every other object."""
-        try:
-            msg = self.node.wait_for_objects([target], self._newer_than(target),
-                                             self.s.observe_timeout_s)[target]
-        except StackError as exc:
-            if int(target) not in self.last_cloud:
-                raise
-            self.node.get_logger().warning(f"{exc}; keeping object {target}'s last cloud")
-            return self.last_cloud[int(target)]
-        arr = cloud_to_arrays(msg.cloud, require_normals=True)
-        cloud = ObservedCloud(arr.points, arr.normals, msg.cloud, int(target),
-                              movable_mask(msg.cloud))
-        self.last_cloud[int(target)] = cloud
-        return cloud
-
-    def _newer_than(self, target: int) -> Time | None:
-        stamps = [t for t in (self.seen_after.get(int(target)), self.latest_interaction)
-                  if t is not None]
-        return max(stamps) if stamps else None
-
-    def execute(self, target: int, action: Action) -> TrialResult:
-        outcome = self.node.execute(action_to_interaction(action, object_id=int(target)))
-        self.outcomes.append(outcome)
-        if self.s.fresh_after_execute:
-            self.latest_interaction = self.node.get_clock().now()
-        result = outcome_to_trial_result(outcome)
-        if self.run is not None:  # on disk (fsync) before the loop learns from it
-            cloud = self.last_cloud[int(target)]  # the cloud the action was chosen on
-            self.run.append(int(target), self.instance_of.get(int(target)), action, result,
-                            cloud.points, cloud.normals, cloud.msg.header.frame_id)
-        return result
-
-
-class RosModel:
-    """``ExplorationModel`` over the inference node: scores and updates go through services."""
-
-    def __init__(self, node: PlannerNode, primitive: str, category: str,
-                 run: SessionRun | None = None) -> None:
-        self.node, self.primitive, self.category = node, primitive, category
-        self.run = run  # the session run: its checkpoint name, its updates recorded
-        self.checkpoint_path = run.checkpoint if run is not None else ""
-        self.last_mean: float | None = None
-        self.on_scored: list = []  # callbacks(mean similarity), after every score
-
-    def score(self, clouds: Sequence[ObservedCloud],
-              candidates: Sequence[Candidates]) -> list[Scored]:
-        req = PredictMaps.Request(clouds=[c.msg for c in clouds],
-                                  object_ids=[c.object_id for c in clouds],
-                                  primitive=self.primitive, num_directions=4, num_best=1)
-        req.query_cloud = np.concatenate(
-            [np.full(len(c), i, np.uint32) for i, c in enumerate(candidates)]).tolist()
-        req.query_point_index = np.concatenate(
-            [c.point_index for c in candidates]).astype(np.uint32).tolist()
-        frames = np.concatenate([np.concatenate([c.up, c.forward], axis=1)
-                                 for c in candidates]).astype(np.float32)
-        req.query_frames = frames.reshape(-1).tolist()
-        res = self.node.call(self.node.predict_cli, req, "predict_maps")
-        aff = np.asarray(res.query_affordances, np.float32)
-        sim = np.asarray(res.query_similarities, np.float32)
-        out, start = [], 0
-        for c in candidates:
-            out.append(Scored(aff[start:start + len(c)], sim[start:start + len(c)]))
-            start += len(c)
-        self.last_mean = float(np.mean(sim)) if len(sim) else 0.0
-        for cb in self.on_scored:
-            cb(self.last_mean)
-        return out
-
-    def update(self, executed: Sequence[Executed]) -> dict[str, float]:
-        """One update_model call per executed interaction: all but the last only record, the
-        last fits on everything explored and saves the checkpoint (one fit per round)."""
-        requests = []
-        for e in executed:
-            action = e.candidates.action(e.cloud, e.index, self.primitive)
-            requests.append(UpdateModel.Request(
-                cloud=e.cloud.msg, interactions=[action_to_interaction(action, e.cloud.object_id)],
-                outcomes=[trial_result_to_outcome(e.result)],
-                update_affordance=e.update_affordance))
-        return self._send(requests, fit=True)
-
-    def restore(self) -> None:
-        """Resume the session run in the inference node: the run's checkpoint and every
-        interaction recorded (sent again, the first request with ``restore``); a fit when the
-        run recorded interactions after its last update (it was cut mid-round)."""
-        run = self.run
-        assert run is not None
-        requests = []
-        for rec in run.interactions:
-            points, normals = rec.cloud(run.path)
-            requests.append(UpdateModel.Request(
-                cloud=arrays_to_cloud(points, normals, frame_id=rec.frame_id),
-                interactions=[action_to_interaction(rec.action, rec.object_id)],
-                outcomes=[trial_result_to_outcome(rec.result)], update_affordance=True))
-        if requests:
-            requests[0].restore = True
-            self._send(requests, fit=run.fitted < run.count)
-
-    def _send(self, requests: list[UpdateModel.Request], fit: bool) -> dict[str, float]:
-        """update_model for each request: all but the last only record; the last fits on
-        everything explored (``fit``) and saves the checkpoint, recorded in the session log."""
-        stats: dict[str, float] = {}
-        for k, req in enumerate(requests):
-            last = k == len(requests) - 1
-            req.category, req.steps = self.category, self.node.settings.update_steps
-            req.record_only = not (last and fit)
-            req.save_checkpoint = last and fit
-            req.checkpoint_name = self.run.checkpoint_name if self.run is not None else ""
-            res = self.node.call(self.node.update_cli, req, "update_model")
-            self.checkpoint_path = res.checkpoint_path or self.checkpoint_path
-            stats = {"loss": res.loss, "loss_aff": res.affordance_loss,
-                     "loss_sim": res.similarity_loss}
-        if fit and self.run is not None:
-            self.run.record_update(self.checkpoint_path, stats)
-        return stats
-
-    def snapshot(self) -> str:
-        """The model lives in the inference node: its last saved checkpoint stands for it."""
-        return self.checkpoint_path
-
-
-@dataclass
-class _Progress:
-    """Steps of the running explore call, kept even when the loop fails half-way."""
-
-    budget: int
-    category: str
-    primitive: str
-    records: list[StepRecord] = field(default_factory=list)
-    pending: ExplorationProgress | None = None
-    feedback: Callable[[ExplorationProgress], None] | None = None  # the action's, per step
 
 
 class PlannerNode(Node):
@@ -357,6 +160,8 @@ class PlannerNode(Node):
         s = self.settings
         self.arm = Arm(s.arm, tuple(s.arm_base_pose), tuple(s.arm_workspace_min),
                        tuple(s.arm_workspace_max))  # ValueError names a wrong value
+        self.policy = ManipulatePolicy(DEFAULT_CHECK if s.check_approach else None, self.arm,
+                                       s.approach_candidates)
         self.scope = state_scope(self, s.state_scope)
         self.log_dir = scoped_dir(s.exploration_log_dir or default_log_dir(), self.scope)
         self.get_logger().info(f"exploration sessions in {self.log_dir}")
@@ -390,6 +195,7 @@ class PlannerNode(Node):
             callback_group=self.user_group)
         self.create_service(Manipulate, "manipulate", self.on_manipulate,
                             callback_group=self.user_group)
+        self.explore_service = ExploreService(self)
         self.get_logger().info(f"planner ready; {describe(self.settings)}")
 
     # --- talking to the other nodes ---------------------------------------------------------
@@ -492,7 +298,7 @@ class PlannerNode(Node):
         return [int(i) for i in res.object_ids]
 
     # --- request handling ---------------------------------------------------------------------
-    def _targets(self, category: str, object_ids: Sequence[int],
+    def targets(self, category: str, object_ids: Sequence[int],
                  instances: Sequence[int]) -> tuple[list[int], Time | None]:
         """Object ids to act on, loading instances into the scene when asked."""
         ids = [int(i) for i in object_ids]
@@ -538,15 +344,9 @@ class PlannerNode(Node):
                              f"frame had {sorted(found)})")
         return seen, [i for i in ids if i not in found]
 
-    @staticmethod
-    def _check_primitive(primitive: str) -> None:
-        if primitive not in PRIMITIVES:
-            raise ValueError(f"unknown primitive {primitive!r}; expected one of "
-                             f"{', '.join(PRIMITIVES)}")
-
     def on_explore(self, req: Explore.Request, res: Explore.Response) -> Explore.Response:
         """The explore service: the loop, answered when it ends."""
-        self.run_explore(req, res)
+        self.explore_service.run(req, res)
         return res
 
     def on_explore_goal(self, goal: ExploreAction.Goal) -> GoalResponse:
@@ -566,7 +366,7 @@ class PlannerNode(Node):
         """The explore action: the service's loop, feedback per interaction, cancel between
         interactions (what was executed stays recorded and learned from)."""
         result = ExploreAction.Result()
-        stopped = self.run_explore(
+        stopped = self.explore_service.run(
             handle.request, result, should_stop=lambda: handle.is_cancel_requested,
             feedback=lambda m: handle.publish_feedback(ExploreAction.Feedback(progress=m)))
         if stopped == "cancelled":
@@ -577,158 +377,20 @@ class PlannerNode(Node):
             handle.abort()
         return result
 
-    def run_explore(self, req: Explore.Request | ExploreAction.Goal,
-                    res: Explore.Response | ExploreAction.Result,
-                    should_stop: Callable[[], bool] | None = None,
-                    feedback: Callable[[ExplorationProgress], None] | None = None) -> str:
-        """THE explore implementation of the service and the action: fills ``res``, returns
-        how the loop stopped ("budget", "bar", "exhausted", "cancelled"; "busy" / "error")."""
-        if not self.busy.acquire(blocking=False):
-            res.success, res.message = False, BUSY
-            return "busy"
-        prog = _Progress(int(req.budget), req.category, req.primitive, feedback=feedback)
-        spent, stopped = 0, "error"
-        model: RosModel | None = None
-        run: SessionRun | None = None  # the session's run, once this call has started it
-        t0 = time.perf_counter()
-        self.pin_peers()
-        try:
-            s = self.settings
-            if req.category:
-                load_categories().check_category(req.category)
-            elif len(req.instances):
-                raise ValueError("category is required with instances")
-            self._check_primitive(req.primitive)
-            if req.budget == 0:
-                raise ValueError("budget must be > 0")
-            if req.budget > s.max_budget:
-                raise ValueError(f"budget {req.budget} exceeds max_budget {s.max_budget}")
-            bar = float(req.similarity_bar) or s.default_bar
-            if not 0.0 < bar <= 1.0:
-                raise ValueError(f"similarity_bar must be in (0, 1], got {bar}")
-            session = open_session(self.log_dir, req.session, req.category, req.primitive,
-                                   resume=s.resume)
-            ids, newer = self._targets(req.category, req.object_ids, req.instances)
-            loaded = ids[len(ids) - len(req.instances):] if len(req.instances) else []
-            instance_of = {oid: int(i) for oid, i in zip(loaded, req.instances, strict=True)}
-            ids, missing = self.visible(ids, newer)
-            prog.budget = int(req.budget) * len(ids)  # interactions in all
-            run = session
-            spent = run.start({
-                "category": req.category, "instances": [int(i) for i in req.instances],
-                "object_ids": [int(i) for i in req.object_ids], "primitive": req.primitive,
-                "budget": int(req.budget), "similarity_bar": bar, "strategy": s.strategy,
-                "objects": ids, "seed": s.seed})
-            world = RosWorld(self, run, instance_of)
-            for i in ids:
-                world.seen_after[i] = newer
-            model = RosModel(self, req.primitive, req.category, run)
-            if spent:
-                self.get_logger().info(f"explore: resuming {run.path} after {spent} recorded "
-                                       f"interaction(s) ({run.fitted} learned from)")
-                model.restore()
-            model.on_scored.append(lambda mean: self._flush_progress(prog, mean))
-            cfg = ExploreConfig(budget=int(req.budget), sim_bar=bar,
-                                points_per_object=s.points_per_object,
-                                dirs_per_point=s.dirs_per_point, snapshot_budgets=(),
-                                check_approach=s.check_approach, seed=s.seed)
-
-            def on_step(rec: StepRecord) -> None:
-                prog.records.append(rec)
-                prog.pending = self._progress_msg(prog, rec, world.outcomes[rec.step - spent - 1])
-
-            self.get_logger().info(f"explore {req.category or 'scene'} objects {ids} "
-                                   f"({req.primitive}, budget {req.budget}, bar {bar}; "
-                                   f"{run.path})")
-            result = explore(model, world, ids, get_strategy(s.strategy), cfg, req.primitive,
-                             rng=np.random.default_rng([s.seed, spent]), on_step=on_step,
-                             should_stop=should_stop, spent=spent, arm=self.arm)
-            stopped = result.stopped
-            res.success = stopped != "cancelled"
-            res.reached_similarity_bar = stopped == "bar"
-            res.final_mean_similarity = float(result.mean_similarity[-1])
-            done = (f"{len(result.steps)} interaction(s)" +
-                    (f" after the {spent} recorded by an interrupted run" if spent else "") +
-                    f" on {len(ids)} object(s), {run.successes} of {run.count} successful")
-            if stopped == "cancelled":
-                res.message = (f"cancelled after {done}; what was executed is recorded and "
-                               "learned from (checkpoint_path), the next explore of this "
-                               "session continues")
-            else:
-                stop = {"bar": "reached the bar", "exhausted": "no candidate left"}.get(
-                    stopped, "spent the budget")
-                res.message = f"{done}; {stop}"
-            res.message += (f" (mean similarity {res.final_mean_similarity:.3f}) in "
-                            f"{time.perf_counter() - t0:.1f} s" +
-                            (f"; objects {missing} not seen by the segmentation, skipped"
-                             if missing else ""))
-        except (ValueError, StackError) as exc:
-            res.success = False
-            res.message = str(exc)
-            if run is not None and run.count:
-                res.message += (f" (after {run.count} interaction(s), recorded in {run.path}: "
-                                "the next explore of this session continues)")
-        except Exception as exc:  # noqa: BLE001 - a request must not kill the node
-            res.success, res.message = False, f"internal error: {type(exc).__name__}: {exc}"
-            self.get_logger().error(f"explore failed: {exc!r}")
-        finally:
-            self._flush_progress(prog, None)
-            if run is not None:
-                try:
-                    run.end(stopped, complete=res.success, message=res.message)
-                except OSError as exc:
-                    self.get_logger().error(f"explore: cannot write {run.path}: {exc}")
-            self.busy.release()
-        res.interactions_used = run.count if run is not None else 0
-        res.successes = run.successes if run is not None else 0
-        res.resumed_from = spent
-        res.checkpoint_path = model.checkpoint_path if model else ""
-        if res.success:
-            self.get_logger().info(f"explore: {res.message}")
-        else:
-            self.get_logger().warning(f"explore refused/failed: {res.message}")
-        return stopped
-
-    def _progress_msg(self, prog: _Progress, rec: StepRecord,
-                      outcome: InteractionOutcome | None) -> ExplorationProgress:
-        act = Action(np.asarray(rec.point), np.asarray(rec.up), np.asarray(rec.forward),
-                     primitive=prog.primitive)
-        msg = ExplorationProgress(step=rec.step, budget=prog.budget, category=prog.category,
-                                  interaction=action_to_interaction(act, int(rec.target)),
-                                  predicted_similarity=rec.similarity,
-                                  predicted_affordance=rec.affordance,
-                                  mean_similarity=rec.mean_similarity,
-                                  loss=float(rec.losses.get("loss", 0.0)))
-        if outcome is not None:
-            msg.outcome = outcome
-        return msg
-
-    def _flush_progress(self, prog: _Progress, mean_after: float | None) -> None:
-        """Publish the pending step once the similarity after its update is known (the
-        loop's next scoring); at the end, with the value from before the update."""
-        msg, prog.pending = prog.pending, None
-        if msg is None:
-            return
-        if mean_after is not None:
-            msg.mean_similarity = float(mean_after)
-        msg.header.stamp = self.get_clock().now().to_msg()
-        self.progress_pub.publish(msg)
-        if prog.feedback is not None:
-            prog.feedback(msg)
-
     def on_manipulate(self, req: Manipulate.Request,
                       res: Manipulate.Response) -> Manipulate.Response:
+        """Per object, the action the manipulate policy picks (``w2e_ros.core.policy``) on
+        the inference node's best actions, executed once; no adaptation."""
         if not self.busy.acquire(blocking=False):
             res.success, res.message = False, BUSY
             return res
         t0 = time.perf_counter()
         self.pin_peers()
         try:
-            s = self.settings
-            self._check_primitive(req.primitive)
+            check_primitive(req.primitive)
             if req.category:
                 load_categories().check_category(req.category)
-            ids, newer = self._targets(req.category, req.object_ids, req.instances)
+            ids, newer = self.targets(req.category, req.object_ids, req.instances)
             _, missing = self.visible(ids, newer)
             world = RosWorld(self)
             # candidate actions seeded by the instance when the request names one (else by the
@@ -746,31 +408,10 @@ class PlannerNode(Node):
                         reason="not seen by the segmentation (occluded or too few points)"))
                     continue
                 world.seen_after[oid] = newer
-                cloud = world.observe(oid)
-                maps = self.call(self.predict_cli, PredictMaps.Request(
-                    clouds=[cloud.msg], object_ids=[oid], primitive=req.primitive,
-                    num_directions=s.manipulate_directions,
-                    num_best=(s.approach_candidates if s.check_approach or s.arm != "flying"
-                              else 1),
-                    seed=stable_seed("manipulate", key_of.get(oid, oid), s.seed)),
-                    "predict_maps")
-                k = self._first_clear(cloud, maps.maps[0].best_actions, req.primitive)
-                best = maps.maps[0].best_actions[max(k, 0)]
-                best.object_id, best.primitive = oid, req.primitive
-                if k < 0:  # every approach runs into the object or out of reach
-                    outcome = InteractionOutcome(
-                        valid=False, joint_index=-1,
-                        reason=f"not executed: each of the {len(maps.maps[0].best_actions)} "
-                               "best actions " + (
-                                   "runs into the object's observed cloud on its approach"
-                                   if s.arm == "flying" else
-                                   f"runs into the observed cloud or is out of the {s.arm} "
-                                   "arm's reach"))
-                    self.get_logger().warning(f"manipulate object {oid}: {outcome.reason}")
-                else:
-                    outcome = self.execute(best)
+                best, score, outcome = self._manipulate_one(world.observe(oid), req.primitive,
+                                                            key_of.get(oid, oid))
                 res.interactions.append(best)
-                res.predicted_affordances.append(float(maps.maps[0].best_scores[max(k, 0)]))
+                res.predicted_affordances.append(score)
                 res.outcomes.append(outcome)
             n_ok = sum(o.success for o in res.outcomes)
             res.success = n_ok == len(res.outcomes)
@@ -786,24 +427,31 @@ class PlannerNode(Node):
         self.get_logger().info(f"manipulate: {res.message}")
         return res
 
-
-    def _first_clear(self, cloud: ObservedCloud, actions: Sequence[Interaction],
-                     primitive: str) -> int:
-        """Index of the best action whose approach is clear (check_approach) and that the
-        arm can follow (arm panda), -1 if none; 0 without either check."""
-        if not self.settings.check_approach and self.arm.kind == "flying":
-            return 0
-        acts = [interaction_to_action(a) for a in actions]
-        k, refused = first_feasible(
+    def _manipulate_one(self, cloud: ObservedCloud, primitive: str, key: object
+                        ) -> tuple[Interaction, float, InteractionOutcome]:
+        """The chosen action on one observed object, its predicted affordance and what
+        happened (not executed when the policy refuses every candidate)."""
+        s, oid = self.settings, cloud.object_id
+        maps = self.call(self.predict_cli, PredictMaps.Request(
+            clouds=[cloud.msg], object_ids=[oid], primitive=primitive,
+            num_directions=s.manipulate_directions, num_best=self.policy.num_ranked,
+            seed=stable_seed("manipulate", key, s.seed)), "predict_maps").maps[0]
+        acts = [interaction_to_action(a) for a in maps.best_actions]
+        choice = self.policy.choose(
             cloud.points, np.array([a.point for a in acts]), np.array([a.up for a in acts]),
-            np.array([a.forward for a in acts]), primitive, self.arm,
-            DEFAULT_CHECK if self.settings.check_approach else None)
-        if k > 0:
-            self.get_logger().info(
-                f"manipulate: of the {k} best action(s), {refused['blocked']} run into the "
-                f"object on their approach and {refused['unreachable']} are out of the "
-                f"{self.arm.kind} arm's reach; executing number {k + 1}")
-        return k
+            np.array([a.forward for a in acts]), primitive)
+        k = max(choice.index, 0)
+        best = maps.best_actions[k]
+        best.object_id, best.primitive = oid, primitive
+        if choice.index < 0:  # every approach runs into the object or out of reach
+            outcome = InteractionOutcome(valid=False, joint_index=-1,
+                                         reason=self.policy.refusal(len(maps.best_actions)))
+            self.get_logger().warning(f"manipulate object {oid}: {outcome.reason}")
+        else:
+            if choice.index > 0:
+                self.get_logger().info(f"manipulate: {self.policy.skipped(choice)}")
+            outcome = self.execute(best)
+        return best, float(maps.best_scores[k]), outcome
 
 
 def main(args: list[str] | None = None) -> None:
