@@ -44,6 +44,7 @@ from w2e_msgs.action import FollowWaypoints
 from w2e_ros.core import kinematics as kin
 from w2e_ros.ros.action_client import LockedActionClient
 from w2e_ros.ros.conversions import from_pose, to_pose
+from w2e_ros.ros.futures import StackError, wait_future
 from w2e_ros.ros.params import ParameterError, declare_typed_parameters, describe, param
 from w2e_ros.ros.peers import announce
 from w2e_ros.ros.qos import LATCHED_QOS, RELIABLE_QOS
@@ -379,15 +380,16 @@ class ArmAdapterNode(Node):
         goal = self._gripper_type.Goal()
         goal.command.position = s.gripper_open_position if command == GRIPPER_OPEN else 0.0
         goal.command.max_effort = s.gripper_max_effort
-        done = threading.Event()
-        sent = self._gripper.send_goal_async(goal)
-        sent.add_done_callback(lambda _f: done.set())
-        if not done.wait(s.gripper_timeout_s) or not sent.result().accepted:
+        try:
+            sent = wait_future(self._gripper.send_goal_async(goal), s.gripper_timeout_s,
+                               s.gripper_action)
+        except StackError:
             return "the gripper did not accept the command"
-        done.clear()
-        result = sent.result().get_result_async()
-        result.add_done_callback(lambda _f: done.set())
-        if not done.wait(s.gripper_timeout_s):
+        if not sent.accepted:
+            return "the gripper did not accept the command"
+        try:
+            wait_future(sent.get_result_async(), s.gripper_timeout_s, s.gripper_action)
+        except StackError:
             return "the gripper did not finish in time"
         return ""  # a grasp that closes on nothing is not an error: the outcome says so
 

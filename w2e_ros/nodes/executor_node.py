@@ -46,7 +46,7 @@ from w2e_ros.core.outcome import (
     apply_cloud_outcome,
     judge_clouds,
 )
-from w2e_ros.core.primitives import Action
+from w2e_ros.core.primitives import Action, TrialResult
 from w2e_ros.ros.action_client import LockedActionClient
 from w2e_ros.ros.conversions import (
     from_xyz,
@@ -54,6 +54,7 @@ from w2e_ros.ros.conversions import (
     to_pose,
     trial_result_to_outcome,
 )
+from w2e_ros.ros.futures import StackError, WaitTimeoutError, wait_future
 from w2e_ros.ros.params import ParameterError, declare_typed_parameters, describe, param
 from w2e_ros.ros.peers import PeerWatch, announce
 from w2e_ros.ros.pointcloud import cloud_to_arrays
@@ -87,31 +88,6 @@ class ExecutorSettings:
     cloud_radius: float = param(
         DEFAULT_JUDGE.radius, "clouds: neighbourhood of the contact whose motion is judged (m)",
         min=0.0)
-
-
-class PeerLostError(RuntimeError):
-    """The robot side's process died or was restarted while a trial waited on it."""
-
-
-class _Waiter:
-    """Wait in a worker thread for a future that another executor thread completes."""
-
-    def __init__(self, future, check=None) -> None:
-        """``check()``: why the server cannot answer any more (None while it can)."""
-        self._event = threading.Event()
-        future.add_done_callback(lambda _f: self._event.set())
-        self.future = future
-        self.check = check
-
-    def wait(self, timeout: float):
-        deadline = time.monotonic() + timeout
-        while not self._event.wait(min(0.5, max(0.0, deadline - time.monotonic()))):
-            if time.monotonic() >= deadline:
-                raise TimeoutError
-            why = self.check() if self.check is not None else None
-            if why:
-                raise PeerLostError(why)
-        return self.future.result()
 
 
 class GripperExecutorNode(Node):
@@ -188,25 +164,9 @@ class GripperExecutorNode(Node):
                                 f"{interaction.object_id} on 'objects' within "
                                 f"{self.settings.cloud_timeout_s:.0f} s (is the segmentation "
                                 "node running?)")
-            if not self._robot.wait_for_server(timeout_sec=self.settings.server_timeout_s):
-                return fail(f"robot action {self.settings.robot_action!r} is not available")
-            robot = self._robot_peer.current()
-
-            def check() -> str | None:
-                return self._robot_peer.check(robot)
-
-            try:
-                sent = _Waiter(self._robot.send_goal_async(
-                    goal, feedback_callback=on_robot_feedback), check).wait(
-                    self.settings.server_timeout_s)
-                if not sent.accepted:
-                    return fail("the robot side rejected the trajectory")
-                res = _Waiter(sent.get_result_async(), check).wait(
-                    self.settings.trial_timeout_s).result
-            except TimeoutError:
-                return fail("the robot side did not answer in time")
-            except PeerLostError as err:
-                return fail(f"{self.settings.robot_action}: {err}")
+            res = self._follow(goal, on_robot_feedback)
+            if isinstance(res, str):
+                return fail(res)
             self._last_end = self.get_clock().now() + Duration(
                 seconds=self.settings.cloud_settle_s)
             after = None
@@ -232,19 +192,7 @@ class GripperExecutorNode(Node):
         )
         note = ""
         if clouds and trial.valid:
-            judged_by_joints = trial.success
-            judged = self._judge(before, after, action)
-            if isinstance(judged, str):
-                trial = replace(trial, valid=False, success=False, reason=judged)
-            else:
-                trial = apply_cloud_outcome(trial, judged)
-                if res.message and not res.reached and not trial.success:
-                    # what stopped the robot (the arm adapter: "blocked: ...") stays said
-                    trial = replace(trial, reason=f"{trial.reason}; robot: {res.message}")
-                note = (f" [clouds: motion {judged.motion:.4f} m (threshold "
-                        f"{judged.threshold:.4f}), cosine {judged.cosine:+.2f}"
-                        + (f"; joints say success={judged_by_joints}"
-                           if len(res.joints_before.position) else "") + "]")
+            trial, note = self._by_clouds(trial, before, after, action, res)
         outcome = trial_result_to_outcome(trial)
         phase("done", n, n)
         self.get_logger().info(
@@ -256,6 +204,46 @@ class GripperExecutorNode(Node):
 
 
     # -- outcome from clouds ------------------------------------------------------------------
+    def _follow(self, goal: FollowWaypoints.Goal, on_feedback) -> FollowWaypoints.Result | str:
+        """The robot side follows ``goal``: its result, or why it did not (unavailable,
+        rejected, no answer in time, its process died or restarted)."""
+        s = self.settings
+        if not self._robot.wait_for_server(timeout_sec=s.server_timeout_s):
+            return f"robot action {s.robot_action!r} is not available"
+        robot = self._robot_peer.current()
+
+        def check() -> str | None:
+            return self._robot_peer.check(robot)
+
+        try:
+            sent = wait_future(self._robot.send_goal_async(goal, feedback_callback=on_feedback),
+                               s.server_timeout_s, s.robot_action, check=check)
+            if not sent.accepted:
+                return "the robot side rejected the trajectory"
+            return wait_future(sent.get_result_async(), s.trial_timeout_s, s.robot_action,
+                               check=check).result
+        except WaitTimeoutError:
+            return "the robot side did not answer in time"
+        except StackError as err:  # PeerLostError: "<robot_action>: <why>"
+            return str(err)
+
+    def _by_clouds(self, trial: TrialResult, before, after, action: Action,
+                   res) -> tuple[TrialResult, str]:
+        """A valid trial judged by the object's clouds before and after it; the log note."""
+        judged_by_joints = trial.success
+        judged = self._judge(before, after, action)
+        if isinstance(judged, str):
+            return replace(trial, valid=False, success=False, reason=judged), ""
+        trial = apply_cloud_outcome(trial, judged)
+        if res.message and not res.reached and not trial.success:
+            # what stopped the robot (the arm adapter: "blocked: ...") stays said
+            trial = replace(trial, reason=f"{trial.reason}; robot: {res.message}")
+        note = (f" [clouds: motion {judged.motion:.4f} m (threshold "
+                f"{judged.threshold:.4f}), cosine {judged.cosine:+.2f}"
+                + (f"; joints say success={judged_by_joints}"
+                   if len(res.joints_before.position) else "") + "]")
+        return trial, note
+
     def _on_objects(self, msg: SegmentedObjects) -> None:
         with self._objects_cv:
             self._objects = msg
