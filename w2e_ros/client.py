@@ -10,9 +10,19 @@ calls returning plain dataclasses, with the futures and the spinning hidden.
         after = w2e.manipulate("door", instances=[40, 41, 42], primitive="pull")
         print(before.success_rate, after.success_rate)
 
+``explore`` runs the planner's explore action; ``start_explore`` returns the running task
+without waiting, as ``nav2_simple_commander``'s tasks (``feedback()``, ``is_done()``,
+``cancel()``, ``result()``):
+
+        task = w2e.start_explore("door", instances=range(30, 35), primitive="pull", budget=5)
+        while not task.is_done():
+            print(task.feedback()[-1:])  # the steps executed so far
+            time.sleep(1.0)
+        print(task.result().message)
+
 The client owns a private rclpy context and a background executor thread, so it works in a
-script, a notebook or a test next to other rclpy code, and progress messages arrive while a
-call blocks.
+script, a notebook or a test next to other rclpy code, and feedback arrives while a call
+blocks.
 """
 
 from __future__ import annotations
@@ -21,15 +31,20 @@ import threading
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
+from uuid import uuid4
 
 import numpy as np
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from std_srvs.srv import Trigger
+from unique_identifier_msgs.msg import UUID
+from w2e_msgs.action import Explore as ExploreAction
 from w2e_msgs.msg import ExplorationProgress, Interaction, SceneObject, SegmentedObjects
-from w2e_msgs.srv import Explore, LoadScene, Manipulate, PredictMaps
+from w2e_msgs.srv import LoadScene, Manipulate, PredictMaps
 
+from w2e_ros.ros.action_client import LockedActionClient
+from w2e_ros.ros.futures import StackError, WaitTimeoutError, wait_future
 from w2e_ros.ros.pointcloud import arrays_to_cloud, cloud_to_arrays
 from w2e_ros.ros.qos import LATCHED_QOS, RELIABLE_QOS
 
@@ -64,6 +79,13 @@ class Step:
     mean_similarity: float
     loss: float
     joint_motion: list[float] = field(default_factory=list)  # every joint of the object
+
+    @staticmethod
+    def from_msg(m: ExplorationProgress) -> Step:
+        return Step(int(m.step), Act.from_msg(m.interaction), float(m.predicted_similarity),
+                    float(m.predicted_affordance), bool(m.outcome.valid),
+                    bool(m.outcome.success), float(m.outcome.motion),
+                    float(m.mean_similarity), float(m.loss), list(m.outcome.joint_motion))
 
 
 @dataclass
@@ -133,6 +155,94 @@ class StackCallError(RuntimeError):
     """A service did not answer in time or is not there."""
 
 
+FEEDBACK_GRACE_S = 2.0
+"""Longest wait, once the result is in, for feedback still on its way (feedback and result
+travel apart)."""
+
+
+class ExploreTask:
+    """A running explore goal on the planner's explore action (``W2EClient.start_explore``),
+    as ``nav2_simple_commander``'s tasks: poll :meth:`is_done` and :meth:`feedback`,
+    :meth:`cancel` it, or block on :meth:`result`."""
+
+    def __init__(self, action: LockedActionClient, goal: ExploreAction.Goal,
+                 on_progress: Callable[[Step], None] | None, connect: float,
+                 tasks: dict[bytes, ExploreTask]) -> None:
+        self._t0 = time.perf_counter()
+        self._on_progress = on_progress
+        self._cv = threading.Condition()
+        self._steps: list[Step] = []
+        self._handle = None
+        self._result = None
+        self._rejected: ExploreResult | None = None
+        # feedback comes from the client's own subscription to the action's feedback topic
+        # (W2EClient._on_feedback): rclpy drops a goal's feedback once its result is in, and
+        # the last step's feedback and the result travel apart
+        uuid = UUID(uuid=list(uuid4().bytes))
+        tasks[bytes(uuid.uuid)] = self
+        sent = action.send_goal_async(goal, goal_uuid=uuid)
+        try:
+            self._handle = wait_future(sent, connect, "explore (goal)")
+        except StackError as exc:
+            raise StackCallError(str(exc)) from exc
+        if not self._handle.accepted:
+            self._rejected = ExploreResult(False, "busy: another explore/manipulate is "
+                                                  "running (the planner rejected the goal)")
+        else:
+            self._result = self._handle.get_result_async()
+
+    def on_feedback(self, msg: ExploreAction.Feedback) -> None:
+        """One step's feedback (W2EClient routes it here by goal id)."""
+        step = Step.from_msg(msg.progress)
+        with self._cv:
+            self._steps.append(step)
+            self._cv.notify_all()
+        if self._on_progress:
+            self._on_progress(step)
+
+    def feedback(self) -> list[Step]:
+        """The steps executed so far (one per interaction, after its model update)."""
+        with self._cv:
+            return list(self._steps)
+
+    def is_done(self) -> bool:
+        """True once the goal has ended (done, failed, cancelled or rejected)."""
+        return self._result is None or self._result.done()
+
+    def cancel(self, timeout: float = 10.0) -> bool:
+        """Ask the planner to stop before the next interaction (what ran stays recorded and
+        learned from; the session continues on the next explore); True if it agreed."""
+        if self._handle is None or not self._handle.accepted or self.is_done():
+            return False
+        try:
+            res = wait_future(self._handle.cancel_goal_async(), timeout, "explore (cancel)")
+        except StackError:
+            return False
+        return len(res.goals_canceling) > 0
+
+    def result(self, timeout: float | None = None) -> ExploreResult:
+        """Wait for the end (at most ``timeout`` s: StackCallError after it) and return it,
+        with every step's feedback."""
+        if self._rejected is not None:
+            return self._rejected
+        assert self._result is not None
+        try:
+            r = wait_future(self._result, float("inf") if timeout is None else timeout,
+                            "explore").result
+        except WaitTimeoutError as exc:
+            raise StackCallError(f"explore: no answer within {timeout:.0f} s") from exc
+        except StackError as exc:
+            raise StackCallError(str(exc)) from exc
+        with self._cv:  # the last steps' feedback may still be on its way
+            self._cv.wait_for(lambda: len(self._steps) >= r.interactions_used - r.resumed_from,
+                              FEEDBACK_GRACE_S)
+            steps = list(self._steps)
+        return ExploreResult(r.success, r.message, int(r.interactions_used), int(r.successes),
+                             float(r.final_mean_similarity), bool(r.reached_similarity_bar),
+                             r.checkpoint_path, steps, time.perf_counter() - self._t0,
+                             int(r.resumed_from))
+
+
 class W2EClient:
     """Calls the stack's user-facing services (``explore``, ``manipulate``) and its helpers
     (``load_scene``, ``predict_maps``, ``reset_model``, ``objects``) in ``namespace``."""
@@ -143,18 +253,17 @@ class W2EClient:
         rclpy.init(context=self.context, domain_id=domain_id)
         self.node = Node(node_name, namespace=namespace, context=self.context)
         n = self.node
-        self._explore = n.create_client(Explore, "explore")
+        self._explore = LockedActionClient(n, ExploreAction, "explore")
+        self._tasks: dict[bytes, ExploreTask] = {}  # explore goals by id, for their feedback
+        n.create_subscription(ExploreAction.Impl.FeedbackMessage, "explore/_action/feedback",
+                              self._on_feedback, RELIABLE_QOS)
         self._manipulate = n.create_client(Manipulate, "manipulate")
         self._predict = n.create_client(PredictMaps, "predict_maps")
         self._scene = n.create_client(LoadScene, "load_scene")
         self._reset = n.create_client(Trigger, "reset_model")
         self._lock = threading.Condition()
         self._objects: SegmentedObjects | None = None
-        self._steps: list[Step] = []
-        self._on_progress: Callable[[Step], None] | None = None
         n.create_subscription(SegmentedObjects, "objects", self._on_objects, LATCHED_QOS)
-        n.create_subscription(ExplorationProgress, "exploration_progress", self._on_step,
-                              RELIABLE_QOS)
         self._executor = SingleThreadedExecutor(context=self.context)
         self._executor.add_node(n)
         self._thread = threading.Thread(target=self._executor.spin, daemon=True,
@@ -178,26 +287,23 @@ class W2EClient:
         if not client.wait_for_service(timeout_sec=connect):
             raise StackCallError(f"service {client.srv_name} is not available")
         future = client.call_async(request)
-        done = threading.Event()
-        future.add_done_callback(lambda _f: done.set())
-        if not done.wait(timeout):
+        try:
+            return wait_future(future, timeout, client.srv_name)
+        except WaitTimeoutError as exc:
             client.remove_pending_request(future)
-            raise StackCallError(f"{client.srv_name}: no answer within {timeout:.0f} s")
-        return future.result()
+            raise StackCallError(f"{client.srv_name}: no answer within {timeout:.0f} s") from exc
+        except StackError as exc:
+            raise StackCallError(str(exc)) from exc
+
+    def _on_feedback(self, msg) -> None:
+        task = self._tasks.get(bytes(msg.goal_id.uuid))
+        if task is not None:
+            task.on_feedback(msg.feedback)
 
     def _on_objects(self, msg: SegmentedObjects) -> None:
         with self._lock:
             self._objects = msg
             self._lock.notify_all()
-
-    def _on_step(self, m: ExplorationProgress) -> None:
-        step = Step(int(m.step), Act.from_msg(m.interaction), float(m.predicted_similarity),
-                    float(m.predicted_affordance), bool(m.outcome.valid),
-                    bool(m.outcome.success), float(m.outcome.motion),
-                    float(m.mean_similarity), float(m.loss), list(m.outcome.joint_motion))
-        self._steps.append(step)
-        if self._on_progress:
-            self._on_progress(step)
 
     def wait_until_ready(self, timeout: float = 60.0, simulator: bool = True) -> bool:
         """True once the planner and inference services (and ``load_scene``) are up."""
@@ -206,12 +312,30 @@ class W2EClient:
     def missing_services(self, timeout: float = 60.0, simulator: bool = True) -> list[str]:
         """The services still not up after waiting ``timeout`` s in all ([]: ready)."""
         deadline = time.monotonic() + timeout
-        clients = [self._explore, self._manipulate, self._predict] + (
-            [self._scene] if simulator else [])
-        return [c.srv_name for c in clients
-                if not c.wait_for_service(timeout_sec=max(0.0, deadline - time.monotonic()))]
+        left = lambda: max(0.0, deadline - time.monotonic())  # noqa: E731
+        clients = [self._manipulate, self._predict] + ([self._scene] if simulator else [])
+        missing = [] if self._explore.wait_for_server(timeout_sec=left()) else [
+            self.node.resolve_topic_name("explore") + " (action)"]
+        return missing + [c.srv_name for c in clients
+                          if not c.wait_for_service(timeout_sec=left())]
 
     # --- the user-facing calls --------------------------------------------------------------
+    def start_explore(self, category: str, instances: Iterable[int] = (),
+                      primitive: str = "pull", budget: int = 5, bar: float = 0.9,
+                      object_ids: Iterable[int] = (), session: str = "",
+                      on_progress: Callable[[Step], None] | None = None,
+                      connect: float = 10.0) -> ExploreTask:
+        """Send an explore goal (the planner's explore action) and return the running task
+        at once; arguments as :meth:`explore`. StackCallError when the planner is not there
+        within ``connect`` s; a goal the planner rejects (busy) is a task done at once with
+        success false."""
+        if not self._explore.wait_for_server(timeout_sec=connect):
+            raise StackCallError("action explore is not available")
+        goal = ExploreAction.Goal(category=category, instances=[int(i) for i in instances],
+                                  object_ids=[int(i) for i in object_ids], primitive=primitive,
+                                  budget=int(budget), similarity_bar=float(bar), session=session)
+        return ExploreTask(self._explore, goal, on_progress, connect, self._tasks)
+
     def explore(self, category: str, instances: Iterable[int] = (), primitive: str = "pull",
                 budget: int = 5, bar: float = 0.9, object_ids: Iterable[int] = (),
                 timeout: float = 1800.0,
@@ -219,21 +343,17 @@ class W2EClient:
                 session: str = "") -> ExploreResult:
         """Few-shot exploration of ``category`` on ``instances`` (loaded into the simulated
         scene) and/or scene ``object_ids``; ``on_progress`` sees every step. A ``session``
-        ("": "default") whose last run did not finish is continued (docs/ros_api.md: resume)."""
-        req = Explore.Request(category=category, instances=[int(i) for i in instances],
-                              object_ids=[int(i) for i in object_ids], primitive=primitive,
-                              budget=int(budget), similarity_bar=float(bar), session=session)
-        self._steps, self._on_progress = [], on_progress
-        t0 = time.perf_counter()
+        ("": "default") whose last run did not finish is continued (docs/ros_api.md: resume).
+        Blocks until the end: :meth:`start_explore` and :meth:`ExploreTask.result`; after
+        ``timeout`` s the goal is cancelled (the session continues on the next call) and
+        StackCallError raised."""
+        task = self.start_explore(category, instances, primitive, budget, bar, object_ids,
+                                  session, on_progress)
         try:
-            r = self._call(self._explore, req, timeout)
-        finally:
-            self._on_progress = None
-        time.sleep(0.1)  # the last progress message travels beside the response
-        return ExploreResult(r.success, r.message, int(r.interactions_used), int(r.successes),
-                             float(r.final_mean_similarity), bool(r.reached_similarity_bar),
-                             r.checkpoint_path, list(self._steps), time.perf_counter() - t0,
-                             int(r.resumed_from))
+            return task.result(timeout)
+        except StackCallError:
+            task.cancel()
+            raise
 
     def manipulate(self, category: str = "", instances: Iterable[int] = (),
                    primitive: str = "pull", object_ids: Iterable[int] = (),
