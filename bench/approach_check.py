@@ -44,13 +44,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from w2e_ros.core.actions import encode_rotation, sample_forward, sample_up
 from w2e_ros.core.categories import load_categories
 from w2e_ros.core.evaluate import evaluation_targets
+from w2e_ros.core.explore import map_candidates as explore_map_candidates
 from w2e_ros.core.explore import sample_candidates
 from w2e_ros.core.feasibility import DEFAULT_CHECK, ApproachCheck, approach_clear, approach_hits
 from w2e_ros.core.metrics import bootstrap_ci
 from w2e_ros.core.model import load_model
+from w2e_ros.core.policy import ManipulatePolicy, best_first, score_actions
 from w2e_ros.core.primitives import Action
 from w2e_ros.core.sim_world import SimWorld, Target, stable_seed
 from w2e_ros.paths import default_checkpoint
@@ -58,16 +59,13 @@ from w2e_ros.paths import default_checkpoint
 
 def map_candidates(cloud, directions: int, rng: np.random.Generator):
     """All points x ``directions`` frames, drawn as the inference node's maps draw them."""
-    pidx = np.repeat(np.arange(len(cloud.points)), directions)
-    up = sample_up(cloud.normals[pidx], rng)
-    return pidx, up, sample_forward(up, rng)
+    c = explore_map_candidates(cloud, directions, rng)
+    return c.point_index, c.up, c.forward
 
 
-@torch.no_grad()
 def heads(model, feats: torch.Tensor, pidx, up, fwd) -> tuple[np.ndarray, np.ndarray]:
     """(C,) affordance probability and similarity of actions on one encoded cloud."""
-    logit, sim = model.heads(feats[torch.from_numpy(np.asarray(pidx, np.int64))],
-                             torch.from_numpy(encode_rotation(up, fwd)))
+    logit, sim = score_actions(model, feats, pidx, up, fwd)
     return torch.sigmoid(logit).numpy(), sim.numpy()
 
 
@@ -90,7 +88,7 @@ def measure(world: SimWorld, model, target, cloud, primitive: str, args) -> dict
     rng = np.random.default_rng(stable_seed("approach_check", "manipulate", target.name))
     pidx, up, fwd = map_candidates(cloud, args.directions, rng)
     aff, _ = heads(model, feats, pidx, up, fwd)
-    order = np.argsort(-aff, kind="stable")[:args.candidates]
+    order = best_first(aff)[:args.candidates]
     t0 = time.perf_counter()
     ok = approach_clear(cloud.points, cloud.points[pidx[order]], up[order], fwd[order],
                         primitive)
@@ -98,9 +96,11 @@ def measure(world: SimWorld, model, target, cloud, primitive: str, args) -> dict
     row["manipulate_clear_share"] = float(ok.mean())
     row["manipulate_before"] = execute(world, target, cloud, pidx, up, fwd, int(order[0]),
                                        primitive)
-    row["manipulate_after"] = (execute(world, target, cloud, pidx, up, fwd,
-                                       int(order[int(np.argmax(ok))]), primitive)
-                               if ok.any() else dict(REFUSED))
+    # the planner's choice: the manipulate policy over the same ranking
+    pick = ManipulatePolicy(candidates=args.candidates).pick(aff, cloud.points, pidx, up, fwd,
+                                                             primitive)
+    row["manipulate_after"] = (execute(world, target, cloud, pidx, up, fwd, pick, primitive)
+                               if pick >= 0 else dict(REFUSED))
     row["manipulate_changed"] = not bool(ok[0])
     # explore: lowest similarity among the loop's candidates, then among the clear ones
     rng = np.random.default_rng(stable_seed("approach_check", "explore", target.name))
