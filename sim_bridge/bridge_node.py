@@ -29,6 +29,13 @@ the bridge offers what a Panda's ros2_control setup offers instead of ``follow_w
   finger joints' target opening (the hand).
 * ``joint_states`` (sensor_msgs/JointState): the arm's and the fingers' positions and
   velocities.
+* the hand as franka_ros2's ``franka_gripper`` node serves it: the actions
+  ``franka_gripper/gripper_action`` (control_msgs/GripperCommand: ``position`` one finger's
+  travel, half the width, as franka_gripper reads it; ``max_effort`` the finger drives' force
+  limit), ``franka_gripper/move`` and ``franka_gripper/grasp`` (franka_msgs Move / Grasp:
+  ``width`` the opening, ``speed`` m/s of the width, a grasp ``force`` and ``epsilon``). Each
+  moves the simulated fingers and answers from the simulation: where they stopped, what their
+  drives push with, whether they stalled short of the goal (closed on a part) or reached it.
 
 The arm adapter (``w2e_ros.nodes.arm_adapter_node``, ``dry_run: false``) serves
 ``follow_waypoints`` against these, as it would against a real arm.
@@ -70,6 +77,15 @@ TABLE_ID = 0  # object_id of table points in the camera cloud
 ROBOTS = ("flying", "panda")
 ARM_TOPIC = "panda_arm_controller/joint_trajectory"  # the arm adapter's CONTROLLER_TOPIC
 HAND_TOPIC = "panda_hand_controller/joint_trajectory"
+# the hand's actions, named as franka_ros2's franka_gripper node (in namespace franka_gripper)
+GRIPPER_COMMAND_ACTION = "franka_gripper/gripper_action"
+FRANKA_MOVE_ACTION = "franka_gripper/move"
+FRANKA_GRASP_ACTION = "franka_gripper/grasp"
+GRIP_SPEED = 0.1  # m/s of the width: franka_gripper's default_speed (GripperCommand has none)
+GRIP_TOLERANCE = 0.001  # m per finger: within this of the goal is reached
+GRIP_STILL_S = 0.2  # s without finger motion, short of the goal: stalled (closed on a part)
+GRIP_STILL_SPEED = 0.002  # m/s: slower than this is still
+GRIP_TIMEOUT_S = 5.0  # s beyond the motion's time: give up waiting
 
 
 @dataclass
@@ -170,6 +186,7 @@ class SimBridgeNode(Node):
                                      RELIABLE_QOS, callback_group=arm_group)
             self.create_subscription(JointTrajectory, HAND_TOPIC, self._on_hand_trajectory,
                                      RELIABLE_QOS, callback_group=arm_group)
+            self._serve_gripper()
             self._physics = threading.Thread(target=self._run_physics, daemon=True)
             self._physics.start()
         announce(self, ["load_scene"] + (["follow_waypoints"] if self.settings.robot == "flying"
@@ -430,6 +447,124 @@ class SimBridgeNode(Node):
             return
         self.get_logger().info(f"hand: fingers to {pos[-1, 0]:.3f} m in {times[-1]:.2f} s")
 
+    # -- the hand as franka_gripper serves it (robot: panda) --------------------------------
+    def _serve_gripper(self) -> None:
+        from control_msgs.action import GripperCommand
+        from franka_msgs.action import Grasp, Move
+
+        group = MutuallyExclusiveCallbackGroup()  # one hand: one command at a time
+        kw = {"goal_callback": lambda _g: GoalResponse.ACCEPT,
+              "cancel_callback": lambda _g: CancelResponse.REJECT, "callback_group": group}
+        self._grip_servers = [
+            ActionServer(self, GripperCommand, GRIPPER_COMMAND_ACTION,
+                         execute_callback=self._on_gripper_command, **kw),
+            ActionServer(self, Move, FRANKA_MOVE_ACTION, execute_callback=self._on_franka_move,
+                         **kw),
+            ActionServer(self, Grasp, FRANKA_GRASP_ACTION,
+                         execute_callback=self._on_franka_grasp, **kw)]
+
+    def grip(self, finger: float, speed: float = GRIP_SPEED, force: float | None = None):
+        """Move each finger to ``finger`` (m, clipped to the hand's range) with the width
+        changing at ``speed`` m/s and the drives limited to ``force`` N; wait, in real time
+        as the physics thread steps, until the fingers reach it or stop short (stalled).
+        Returns (FingerState, reached, stalled); ValueError when no scene holds the arm."""
+        from sim_bridge.panda import FINGER_MAX
+
+        finger = float(np.clip(finger, 0.0, FINGER_MAX))
+        with self._lock:
+            if self._live is None:
+                raise ValueError("the scene is empty: call load_scene first")
+            start = float(self._live.panda.finger_positions().mean())
+            duration = max(abs(finger - start) / (max(speed, 1e-3) / 2), 0.05)
+            self._live.command_fingers(np.array([duration]), np.array([finger]), force)
+        t0 = time.monotonic()
+        still_since = None
+        while True:
+            time.sleep(0.02)
+            with self._lock:
+                if self._live is None:
+                    raise ValueError("the scene was cleared while the fingers moved")
+                state = self._live.finger_state()
+            now = time.monotonic()
+            reached = bool(np.abs(state.positions - finger).max() <= GRIP_TOLERANCE)
+            moving = bool(np.abs(state.velocities).max() > GRIP_STILL_SPEED)
+            still_since = None if moving else (still_since or now)
+            if now - t0 >= duration:
+                if reached and not moving:
+                    return state, True, False
+                if still_since is not None and now - still_since >= GRIP_STILL_S:
+                    return state, False, True
+            if now - t0 > duration + GRIP_TIMEOUT_S:
+                return state, reached, False
+
+    def _on_gripper_command(self, goal_handle):
+        """control_msgs/GripperCommand as franka_gripper serves it: position = one finger's
+        travel (half the width); succeeded when reached, aborted otherwise (a closed grasp
+        on a part does not reach 0), the result from the simulation either way."""
+        from control_msgs.action import GripperCommand
+
+        cmd = goal_handle.request.command
+        res = GripperCommand.Result()
+        try:
+            state, reached, stalled = self.grip(cmd.position, GRIP_SPEED, cmd.max_effort)
+        except ValueError as err:
+            self.get_logger().error(f"{GRIPPER_COMMAND_ACTION}: {err}")
+            goal_handle.abort()
+            return res
+        res.position = float(state.positions.mean())
+        res.effort = state.effort
+        res.stalled, res.reached_goal = stalled, reached
+        self.get_logger().info(
+            f"gripper_action: position {cmd.position:.4f} m asked, {res.position:.4f} m "
+            f"({'reached' if reached else 'stalled' if stalled else 'not reached'}, effort "
+            f"{res.effort:.1f} N of {state.force_limit:.0f})")
+        (goal_handle.succeed if reached else goal_handle.abort)()
+        return res
+
+    def _on_franka_move(self, goal_handle):
+        """franka_msgs/Move: open or close to ``width`` at ``speed``; success when there."""
+        from franka_msgs.action import Move
+
+        g = goal_handle.request
+        res = Move.Result()
+        return self._franka(goal_handle, res, "move", g.width, g.speed, None,
+                            lambda w: abs(w - g.width) <= 2 * GRIP_TOLERANCE,
+                            f"the fingers stopped short of {g.width:.4f} m")
+
+    def _on_franka_grasp(self, goal_handle):
+        """franka_msgs/Grasp as libfranka grasps: the fingers close at ``speed`` with
+        ``force`` until they stop (on a part, or shut); success when they stopped within
+        [width - epsilon.inner, width + epsilon.outer] of the ``width`` expected."""
+        from franka_msgs.action import Grasp
+
+        g = goal_handle.request
+        lo, hi = g.width - g.epsilon.inner, g.width + g.epsilon.outer
+        return self._franka(goal_handle, Grasp.Result(), "grasp", g.width, g.speed, g.force,
+                            lambda w: lo <= w <= hi,
+                            f"grasp failed: width outside [{lo:.4f}, {hi:.4f}] m", close=True)
+
+    def _franka(self, goal_handle, res, what: str, width: float, speed: float, force,
+                ok, why: str, close: bool = False):
+        """A franka Move (to ``width``) or, ``close``, Grasp (shut, judged against it)."""
+        from sim_bridge.panda import FINGER_MAX
+
+        if not 0.0 <= width <= 2 * FINGER_MAX:
+            res.success, res.error = False, (f"width {width:.4f} m is outside the hand's "
+                                             f"[0, {2 * FINGER_MAX:.2f}] m")
+        else:
+            try:
+                state, _, _ = self.grip(0.0 if close else width / 2,
+                                        speed if speed > 0 else GRIP_SPEED, force)
+                got = float(state.positions.sum())
+                res.success = bool(ok(got))
+                res.error = "" if res.success else f"{why}: the fingers are {got:.4f} m apart"
+            except ValueError as err:
+                res.success, res.error = False, str(err)
+        self.get_logger().info(f"franka_gripper/{what}: width {width:.4f} m: "
+                               f"{'ok' if res.success else res.error}")
+        (goal_handle.succeed if res.success else goal_handle.abort)()
+        return res
+
     def _run_physics(self) -> None:
         """Step the scene in real time while anything moves (idle otherwise) and publish
         joint_states; the objects' joints are copied out for the camera and object_joint_states."""
@@ -580,8 +715,9 @@ class SimBridgeNode(Node):
 
 
 def main(args: list[str] | None = None) -> None:
-    """Run the bridge (multi-threaded: the camera keeps publishing during a trial)."""
-    run_node(SimBridgeNode, args, threads=2)
+    """Run the bridge (multi-threaded: the camera keeps publishing during a trial, the arm's
+    trajectories arrive while the hand's action waits)."""
+    run_node(SimBridgeNode, args, threads=3)
 
 
 if __name__ == "__main__":

@@ -311,6 +311,16 @@ def run_arm_trial(world: ObjectWorld, qpos: np.ndarray, action: Action, base_pos
                     wrist_error=werr)
 
 
+@dataclass(frozen=True)
+class FingerState:
+    """The simulated hand at one moment."""
+
+    positions: np.ndarray  # (2,) each finger's opening (m)
+    velocities: np.ndarray  # (2,) (m/s)
+    effort: float  # mean force of the two finger drives (N)
+    force_limit: float  # the drives' force limit (N)
+
+
 class LiveArm:
     """The objects and the arm in one persistent scene, advanced in time by the caller (the
     bridge node: in real time): what a joint trajectory controller and the gripper move.
@@ -331,6 +341,7 @@ class LiveArm:
         self._arm: tuple[float, TrajectoryFollower] | None = None  # (start time, follower)
         self._fingers: tuple[float, TrajectoryFollower] | None = None
         self._hold_finger = float(finger)
+        self._finger_force = FINGER_FORCE  # the finger drives' force limit (N)
 
     def command_arm(self, times: np.ndarray, positions: np.ndarray) -> float:
         """Follow ``positions`` (N, 7) at ``times`` (N,) s from now; returns the duration."""
@@ -340,12 +351,32 @@ class LiveArm:
         self._arm = (self.time, f)
         return f.duration
 
-    def command_fingers(self, times: np.ndarray, positions: np.ndarray) -> float:
-        """Move each finger to ``positions`` (N,) (m) at ``times`` (N,) s from now."""
+    def command_fingers(self, times: np.ndarray, positions: np.ndarray,
+                        force: float | None = None) -> float:
+        """Move each finger to ``positions`` (N,) (m) at ``times`` (N,) s from now; ``force``:
+        the most each finger's drive may push with (N; None: as it is, <= 0 or above the
+        hand's: the hand's FINGER_FORCE)."""
         pos = np.clip(np.asarray(positions, float).reshape(-1, 1), 0.0, FINGER_MAX)
         f = TrajectoryFollower([float(self.panda.finger_positions().mean())], times, pos)
+        if force is not None:
+            limit = FINGER_FORCE if force <= 0 else min(float(force), FINGER_FORCE)
+            if limit != self._finger_force:
+                for j in self.panda.fingers:
+                    j.set_drive_property(FINGER_STIFFNESS, FINGER_DAMPING, limit)
+                self._finger_force = limit
         self._fingers = (self.time, f)
         return f.duration
+
+    def finger_state(self) -> FingerState:
+        """Where the fingers are, how fast they move and what their drives push with now."""
+        pos = self.panda.finger_positions()
+        vel = self.panda.velocities()[7:]
+        target = (float(self._fingers[1].at(self.time - self._fingers[0])[0][0])
+                  if self._fingers is not None else self._hold_finger)
+        # the drive law PhysX applies: stiffness x error - damping x velocity, clipped
+        push = np.clip(FINGER_STIFFNESS * (target - pos) - FINGER_DAMPING * vel,
+                       -self._finger_force, self._finger_force)
+        return FingerState(pos, vel, float(np.abs(push).mean()), self._finger_force)
 
     def busy(self) -> bool:
         """A trajectory still runs, or the arm / fingers still move."""
@@ -383,5 +414,6 @@ def hand_pose_at(q: np.ndarray, base_pose=None) -> np.ndarray:
     return panda.hand_pose()
 
 
-__all__ = ["ArmSettings", "ArmTrial", "LiveArm", "SimPanda", "TrajectoryFollower", "base_in_front",
-           "build_panda", "finger_targets", "hand_pose_at", "panda_urdf", "run_arm_trial"]
+__all__ = ["ArmSettings", "ArmTrial", "FingerState", "LiveArm", "SimPanda", "TrajectoryFollower",
+           "base_in_front", "build_panda", "finger_targets", "hand_pose_at", "panda_urdf",
+           "run_arm_trial"]
