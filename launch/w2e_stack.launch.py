@@ -71,8 +71,9 @@ def _nodes(context, *args, **kwargs):
         section.update(params.get(node_name, {}).get("ros__parameters", {}))
         if name == "arm_adapter" and sim_panda:  # live on the simulated arm (as w2e bringup)
             # its arm_base_pose is the bridge's: the file's /** section sets both
-            section.update(dry_run=False, gripper_action="",
-                           gripper_topic="panda_hand_controller/joint_trajectory")
+            section.update(dry_run=False, gripper_interface="gripper_command",
+                           gripper_action="franka_gripper/gripper_action", gripper_topic="",
+                           gripper_max_effort=100.0)
         actions.append(Node(
             package="w2e_ros",
             executable=executable,

@@ -210,8 +210,7 @@ def test_robot_panda_brings_up_the_arm_adapter_live_on_the_bridges_base(tmp_path
     assert bridge.actions == () and "joint_states" in bridge.publishers
     assert adapter.actions == ("follow_waypoints",)
     cmd = " ".join(stack.command(adapter, stack.params))
-    assert "dry_run:=false" in cmd and "gripper_topic:=panda_hand_controller/joint_trajectory" \
-        in cmd
+    assert "dry_run:=false" in cmd and "gripper_interface:=gripper_command" in cmd
     # the base from the file's one /** entry, the same for the bridge, adapter and planner
     for node in ("sim_bridge", "arm_adapter", "planner_node"):
         assert node_parameters(stack.params, node)["arm_base_pose"] == PANDA_BASE

@@ -185,8 +185,8 @@ def test_pull_through_the_stack_with_the_simulated_panda_opens_a_drawer(tmp_path
     adapter_log = tmp_path / "arm_adapter.log"
     adapter = subprocess.Popen(
         [sys.executable, "-m", "w2e_ros.nodes.arm_adapter_node", "--ros-args",
-         "-p", "dry_run:=false", "-p", f"arm_base_pose:={base_arg}", "-p", "gripper_action:=''",
-         "-p", "gripper_topic:=panda_hand_controller/joint_trajectory"],
+         "-p", "dry_run:=false", "-p", f"arm_base_pose:={base_arg}",
+         "-p", "gripper_interface:=gripper_command", "-p", "gripper_max_effort:=100.0"],
         env=env, start_new_session=True, stdout=adapter_log.open("w"),
         stderr=subprocess.STDOUT)
     extra = {"sim_bridge": ["-p", "robot:=panda", "-p", f"arm_base_pose:={base_arg}",

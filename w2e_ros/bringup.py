@@ -83,9 +83,12 @@ NODES: dict[str, NodeSpec] = {
 # follow_waypoints (which the arm adapter then serves against it)
 SIM_PANDA_BRIDGE = replace(NODES["sim_bridge"], actions=(),
                            publishers=("camera/points", "joint_states"))
-# the arm adapter live against the simulated Panda: its hand is a finger JointTrajectory
-SIM_PANDA_ADAPTER_ARGS = ["-p", "dry_run:=false", "-p", "gripper_action:=''",
-                          "-p", "gripper_topic:=panda_hand_controller/joint_trajectory"]
+# the arm adapter live against the simulated Panda: its hand through the GripperCommand action
+# the bridge serves as franka_gripper does, with the simulated hand's full force (100 N, what
+# the finger drives had when the adapter drove them on a JointTrajectory topic)
+SIM_PANDA_ADAPTER_ARGS = ["-p", "dry_run:=false", "-p", "gripper_interface:=gripper_command",
+                          "-p", "gripper_action:=franka_gripper/gripper_action",
+                          "-p", "gripper_topic:=''", "-p", "gripper_max_effort:=100.0"]
 
 
 def node_parameters(params: Path, node: str, namespace: str = "",

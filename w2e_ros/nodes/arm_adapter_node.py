@@ -13,11 +13,13 @@ With ``dry_run`` (the default) that is all: the result says the motion was plann
 executed (``valid`` false, so no outcome is learned from it). Otherwise the trajectory goes, in
 pieces between the gripper's actions, to a joint trajectory controller's topic
 ``panda_arm_controller/joint_trajectory`` (ros2_control's JointTrajectoryController; remap the
-name for another controller), the gripper is driven through a control_msgs/GripperCommand
-action (``gripper_action``, franka_gripper's ``franka_gripper/gripper_action``) or, with
-``gripper_topic`` set, a JointTrajectory of the two finger joints (a finger joint controller;
-the simulated Panda of the bridge, ``robot: panda``, listens on
-``panda_hand_controller/joint_trajectory``) between the pieces, and each piece must end
+name for another controller), the gripper is driven between the pieces as
+``gripper_interface`` says (:mod:`w2e_ros.ros.gripper`): ``gripper_command``, the
+control_msgs/GripperCommand action ``gripper_action`` (franka_gripper's
+``franka_gripper/gripper_action``); ``franka``, franka_gripper's own Move (open) and Grasp
+(close) actions; ``topic``, a JointTrajectory of the two finger joints on ``gripper_topic`` (a
+finger joint controller); ``none``. The bridge's simulated Panda (``robot: panda``) serves all
+of them. Each piece must end
 within ``goal_tolerance`` of its last point on ``joint_states`` (the robot's
 joint_state_broadcaster). The outcome of a real interaction is judged from clouds (the
 executor's ``outcome_source: clouds``): this adapter reports no object joints.
@@ -42,9 +44,8 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from w2e_msgs.action import FollowWaypoints
 
 from w2e_ros.core import kinematics as kin
-from w2e_ros.ros.action_client import LockedActionClient
 from w2e_ros.ros.conversions import from_pose, to_pose
-from w2e_ros.ros.futures import StackError, wait_future
+from w2e_ros.ros.gripper import GRIPPER_INTERFACES, GripperActions
 from w2e_ros.ros.params import ParameterError, declare_typed_parameters, describe, param
 from w2e_ros.ros.peers import announce
 from w2e_ros.ros.qos import LATCHED_QOS, RELIABLE_QOS
@@ -78,17 +79,28 @@ class ArmAdapterSettings:
                                   "may use", min=0.01, max=1.0)
     cartesian_speed: float = param(0.05, "wrist speed along a primitive's straight moves (m/s)",
                                    min=0.001)
-    gripper_action: str = param("franka_gripper/gripper_action", "control_msgs/GripperCommand "
-                                "action of the hand ('': none, gripper commands are skipped)")
+    gripper_interface: str = param(
+        "gripper_command", "how the hand is driven: gripper_command (control_msgs/GripperCommand "
+        "on gripper_action), franka (franka_msgs Move to open, Grasp to close, on "
+        "franka_move_action / franka_grasp_action), topic (finger JointTrajectory on "
+        "gripper_topic) or none (gripper commands skipped)")
+    gripper_action: str = param("franka_gripper/gripper_action", "gripper_command: the "
+                                "control_msgs/GripperCommand action of the hand ('': none)")
+    franka_move_action: str = param("franka_gripper/move", "franka: the franka_msgs/Move action "
+                                    "(opens the hand)")
+    franka_grasp_action: str = param("franka_gripper/grasp", "franka: the franka_msgs/Grasp "
+                                     "action (closes the hand)")
     gripper_topic: str = param(
-        "", "trajectory_msgs/JointTrajectory topic of a finger joint controller "
-        "(<prefix>_finger_joint1/2), used instead of gripper_action when set; the bridge's "
-        "simulated Panda: panda_hand_controller/joint_trajectory")
+        "", "topic: trajectory_msgs/JointTrajectory topic of a finger joint controller "
+        "(<prefix>_finger_joint1/2), e.g. the bridge's panda_hand_controller/joint_trajectory")
     gripper_open_position: float = param(
-        0.04, "GripperCommand position of an open command (0 closes); the Panda hand opens "
-        "0.04 m per finger: check whether your gripper server reads width or finger travel",
-        min=0.0)
-    gripper_max_effort: float = param(20.0, "grasp force of a close command (N)", min=0.0)
+        0.04, "one finger's travel when open (m; 0 closes): GripperCommand's position as "
+        "franka_gripper reads it, half the width a franka Move opens to", min=0.0)
+    gripper_max_effort: float = param(20.0, "grasp force of a close command (N): "
+                                      "GripperCommand's max_effort, a franka Grasp's force",
+                                      min=0.0)
+    gripper_speed: float = param(0.1, "franka: speed of Move and Grasp (m/s of the width)",
+                                 min=0.001)
     gripper_timeout_s: float = param(10.0, "longest wait for one gripper command", min=0.0)
     joint_state_timeout_s: float = param(2.0, "longest wait for joint_states (the start of a "
                                          "plan; dry run without them: the last plan's end)",
@@ -133,22 +145,18 @@ class ArmAdapterNode(Node):
         self.planned_pub = self.create_publisher(JointTrajectory, "planned_trajectory",
                                                  LATCHED_QOS)
         self.path_pub = self.create_publisher(Path, "planned_path", LATCHED_QOS)
-        self._gripper = None
+        self._gripper: GripperActions | None = None
         self._gripper_pub = None
-        if not s.dry_run and s.gripper_topic:
+        self.gripper_interface = self._gripper_interface(s)
+        if not s.dry_run and self.gripper_interface == "topic":
             self._gripper_pub = self.create_publisher(JointTrajectory, s.gripper_topic,
                                                       RELIABLE_QOS)
-        elif not s.dry_run and s.gripper_action:
-            try:
-                from control_msgs.action import GripperCommand
-            except ImportError as err:
-                raise RuntimeError(
-                    f"gripper_action {s.gripper_action!r} needs control_msgs (a ROS install "
-                    "with ros2_control / franka_ros2); set gripper_action:='' to drive the arm "
-                    "without the hand") from err
-            self._gripper_type = GripperCommand
-            self._gripper = LockedActionClient(self, GripperCommand, s.gripper_action,
-                                         callback_group=io)
+        elif not s.dry_run and self.gripper_interface in ("gripper_command", "franka"):
+            self._gripper = GripperActions(
+                self, self.gripper_interface, gripper_action=s.gripper_action,
+                move_action=s.franka_move_action, grasp_action=s.franka_grasp_action,
+                open_position=s.gripper_open_position, max_effort=s.gripper_max_effort,
+                speed=s.gripper_speed, timeout_s=s.gripper_timeout_s, callback_group=io)
         self._server = ActionServer(
             self, FollowWaypoints, "follow_waypoints", execute_callback=self._execute,
             goal_callback=lambda _g: GoalResponse.ACCEPT,
@@ -157,6 +165,25 @@ class ArmAdapterNode(Node):
         announce(self, ["follow_waypoints"])
         mode = "dry run: plans only" if s.dry_run else f"live: {CONTROLLER_TOPIC}"
         self.get_logger().info(f"arm adapter up ({mode}; joints {self.joint_names[0]}..7)")
+
+    def _gripper_interface(self, s: ArmAdapterSettings) -> str:
+        """gripper_interface checked against the names it needs ('': none for gripper_action,
+        as before gripper_interface existed)."""
+        who = self.get_fully_qualified_name()
+        iface = s.gripper_interface
+        if iface not in GRIPPER_INTERFACES:
+            raise ParameterError(who, f"parameter 'gripper_interface' is {iface!r}; expected "
+                                      f"one of {', '.join(GRIPPER_INTERFACES)}")
+        if s.gripper_topic and iface != "topic":
+            raise ParameterError(who, f"gripper_topic is {s.gripper_topic!r} but "
+                                      f"gripper_interface is {iface!r}: set gripper_interface "
+                                      "to topic to drive the fingers on it, or gripper_topic ''")
+        if iface == "topic" and not s.gripper_topic:
+            raise ParameterError(who, "gripper_interface topic needs gripper_topic")
+        if iface == "franka" and not (s.franka_move_action and s.franka_grasp_action):
+            raise ParameterError(who, "gripper_interface franka needs franka_move_action and "
+                                      "franka_grasp_action")
+        return "none" if iface == "gripper_command" and not s.gripper_action else iface
 
     # -- joint states ----------------------------------------------------------------------
     def _on_joint_states(self, msg: JointState) -> None:
@@ -372,26 +399,16 @@ class ArmAdapterNode(Node):
         if self._gripper_pub is not None:
             return self._grip_topic(command)
         if self._gripper is None:
-            self.get_logger().warning(f"gripper command {command} skipped: no gripper_action")
+            self.get_logger().warning(f"gripper command {command} skipped: gripper_interface "
+                                      f"{self.gripper_interface}")
             return ""
-        s = self.settings
-        if not self._gripper.wait_for_server(timeout_sec=s.gripper_timeout_s):
-            return f"gripper action {s.gripper_action!r} is not available"
-        goal = self._gripper_type.Goal()
-        goal.command.position = s.gripper_open_position if command == GRIPPER_OPEN else 0.0
-        goal.command.max_effort = s.gripper_max_effort
-        try:
-            sent = wait_future(self._gripper.send_goal_async(goal), s.gripper_timeout_s,
-                               s.gripper_action)
-        except StackError:
-            return "the gripper did not accept the command"
-        if not sent.accepted:
-            return "the gripper did not accept the command"
-        try:
-            wait_future(sent.get_result_async(), s.gripper_timeout_s, s.gripper_action)
-        except StackError:
-            return "the gripper did not finish in time"
-        return ""  # a grasp that closes on nothing is not an error: the outcome says so
+        done = self._gripper.command(command == GRIPPER_OPEN)
+        if done.error:
+            return done.error
+        # a grasp that closes on a part (or on nothing) is not an error: the outcome says so
+        self.get_logger().info(f"hand {'opened' if command == GRIPPER_OPEN else 'closed'}: "
+                               f"{done.summary}")
+        return ""
 
     def _grip_topic(self, command: int) -> str:
         """The fingers to their target over ``FINGER_MOTION_S`` on gripper_topic; done when
