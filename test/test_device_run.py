@@ -1,0 +1,180 @@
+"""The prepared GPU-machine run (bench/device/), dry-run on the CPU with the tiny spec.
+
+pack.py must refuse, before copying anything, a pack that would not travel; run.py must run
+every job as its own process, stop the one that overruns its limit (keeping what it wrote),
+and bring back one tarball whose summary says which job finished and which timed out.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import subprocess
+import sys
+import tarfile
+import zipfile
+from pathlib import Path
+
+import pytest
+from synthetic import synthetic_data
+
+REPO = Path(__file__).resolve().parents[1]
+DEVICE = REPO / "bench" / "device"
+MIB = 1 << 20
+
+
+def _module(name: str):
+    spec = importlib.util.spec_from_file_location(f"device_{name}", DEVICE / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod  # dataclasses look their module up
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _wheel(folder: Path) -> Path:
+    """A real, tiny pure-python wheel: what the machine lacks travels as such a file."""
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / "w2e_probe-0.1-py3-none-any.whl"
+    info = "w2e_probe-0.1.dist-info"
+    with zipfile.ZipFile(path, "w") as z:
+        z.writestr("w2e_probe/__init__.py", "MESSAGE = 'probe from a travelled wheel'\n")
+        z.writestr(f"{info}/METADATA", "Metadata-Version: 2.1\nName: w2e_probe\nVersion: 0.1\n")
+        z.writestr(f"{info}/WHEEL", "Wheel-Version: 1.0\nGenerator: test\nRoot-Is-Purelib: "
+                                    "true\nTag: py3-none-any\n")
+        z.writestr(f"{info}/RECORD", f"w2e_probe/__init__.py,,\n{info}/METADATA,,\n"
+                                     f"{info}/WHEEL,,\n{info}/RECORD,,\n")
+    return path
+
+
+@pytest.fixture()
+def root(tmp_path: Path) -> Path:
+    """A checkout-like folder with the tiny collection the tiny spec names."""
+    r = tmp_path / "root"
+    synthetic_data(obs_per_cat=2, per_obs=16, num_points=256).save_shard(
+        r / "data" / "device_tiny" / "shard-00000.npz")
+    return r
+
+
+def _pack(args: list[str]) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(DEVICE / "pack.py"), *args],
+                          capture_output=True, text=True, timeout=60)
+
+
+def test_pack_refuses_what_would_not_travel_before_copying_anything(root, tmp_path):
+    out = tmp_path / "pack"
+    spec = str(DEVICE / "tiny.json")
+    big = _pack([spec, "--root", str(root), "--out", str(out), "--tree-bytes", str(64 * MIB)])
+    assert big.returncode == 2
+    assert big.stderr.count("\n") == 1 and "over the 64 MiB" in big.stderr, big.stderr
+    assert "data/device_tiny" in big.stderr  # it names what is large
+    assert not out.exists()
+    missing = _pack([spec, "--root", str(tmp_path), "--out", str(out), "--tree-bytes", "0"])
+    assert missing.returncode == 2 and "data/device_tiny: not found" in missing.stderr
+    # a wheel the spec asks for and no folder holds: refused, with the pip line that fetches it
+    spec2 = tmp_path / "wheel.json"
+    spec2.write_text(json.dumps({**json.loads((DEVICE / "tiny.json").read_text()),
+                                 "wheels": ["transforms3d"]}))
+    nowheel = _pack([str(spec2), "--root", str(root), "--out", str(out), "--tree-bytes", "0",
+                     "--wheels", str(tmp_path / "none")])
+    assert nowheel.returncode == 2 and "pip download" in nowheel.stderr
+    assert "--python-version 3.12" in nowheel.stderr
+
+
+def test_wheel_tags_and_matrix_expansion():
+    pack = _module("pack")
+    fits = pack.wheel_fits_device
+    assert fits("transforms3d-0.4.2-py3-none-any.whl")
+    assert fits("sapien-3.0.3-cp312-cp312-manylinux2014_x86_64.whl")
+    assert fits("x-1.0-cp38-abi3-manylinux_2_17_x86_64.manylinux2014_x86_64.whl")
+    assert not fits("fpsample-1.0.2-cp311-cp311-linux_x86_64.whl")  # the local build
+    assert not fits("sapien-3.0.3-cp312-cp312-manylinux2014_aarch64.whl")
+    spec = json.loads((DEVICE / "benchmark_pull.json").read_text())
+    jobs = pack.expand_jobs(spec)
+    assert len(jobs) == 15 and jobs[0]["name"] == "none_s0"
+    assert "--seeds" in jobs[0]["argv"] and jobs[0]["argv"][jobs[0]["argv"].index("--seeds")
+                                                            + 1] == "0"
+    assert len(pack.expand_jobs(json.loads((DEVICE / "train_pull.json").read_text()))) == 7
+    with pytest.raises(pack.PackError, match="repeat"):
+        pack.expand_jobs({"jobs": [{"name": "a", "argv": "true"}, {"name": "a", "argv": "x"}]})
+
+
+def test_tiny_pack_runs_every_job_as_its_own_process_and_stops_the_overrun(root, tmp_path):
+    spec = json.loads((DEVICE / "tiny.json").read_text())
+    spec["wheels"] = ["w2e_probe"]
+    spec["jobs"].append({"name": "probe", "argv": ["python", "-c",
+                         "import w2e_probe; print(w2e_probe.MESSAGE)"]})
+    spec_path = tmp_path / "tiny_probe.json"
+    spec_path.write_text(json.dumps(spec))
+    _wheel(tmp_path / "wheels")
+    out = tmp_path / "pack"
+    r = _pack([str(spec_path), "--root", str(root), "--out", str(out), "--tree-bytes", "0",
+               "--wheels", str(tmp_path / "wheels")])
+    assert r.returncode == 0, r.stderr
+    manifest = json.loads((out / "pack.json").read_text())
+    assert [j["name"] for j in manifest["jobs"]] == ["train_s0", "train_s1", "overrun", "probe"]
+    assert (out / "inputs" / "data" / "device_tiny" / "shard-00000.npz").is_file()
+    assert (out / "wheels" / "w2e_probe-0.1-py3-none-any.whl").is_file()
+
+    res = tmp_path / "OUT"
+    run = subprocess.run(
+        [sys.executable, str(DEVICE / "run.py"), "--pack", str(out), "--out", str(res),
+         "--deadline-s", "50", "--reserve-s", "5", "--grace-s", "2", "--parallel", "4",
+         "--work", str(tmp_path / "work"), "--site", str(tmp_path / "site")],
+        capture_output=True, text=True, timeout=120)
+    assert run.returncode == 1, run.stdout + run.stderr  # the overrun is not rc 0
+    assert "overrun overrun" in run.stdout
+    with tarfile.open(res / "results.tar.gz") as tar:
+        names = set(tar.getnames())
+        summary = json.load(tar.extractfile("results/summary.json"))
+        overrun_log = tar.extractfile("results/logs/overrun.log").read().decode()
+        probe_log = tar.extractfile("results/logs/probe.log").read().decode()
+    assert summary == json.loads((res / "summary.json").read_text())
+    jobs = {j["name"]: j for j in summary["jobs"]}
+    for s in ("train_s0", "train_s1"):
+        assert jobs[s]["rc"] == 0 and jobs[s]["status"] == "done" and not jobs[s]["timed_out"]
+        assert f"results/outputs/runs/tiny_{s[-2:]}/model.pt" in names
+        assert f"results/outputs/runs/tiny_{s[-2:]}/metrics.jsonl" in names
+        assert f"results/logs/{s}.log" in names
+    o = jobs["overrun"]
+    assert o["timed_out"] and o["status"] == "timed_out" and o["rc"] != 0
+    assert 3 <= o["seconds"] < 10  # its own 3 s limit, not the global deadline
+    assert "sleeping" in overrun_log and "results/outputs/overrun.txt" in names  # kept
+    assert jobs["probe"]["rc"] == 0 and "probe from a travelled wheel" in probe_log
+    assert summary["wheels_rc"] == 0 and summary["left_out"] == []
+    assert "results/logs/_runner.log" in names
+
+
+def test_the_global_deadline_stops_a_job_and_leaves_the_queue_unstarted(tmp_path):
+    """One slot, a job with no limit of its own that sleeps past the deadline: it is stopped
+    at the deadline less the reserve, and the job queued behind it never starts."""
+    pack = tmp_path / "pack"
+    pack.mkdir()
+    sleep = ["python", "-c", "import time; time.sleep(120)"]
+    (pack / "pack.json").write_text(json.dumps({
+        "name": "deadline", "inputs": [], "wheels": [], "env": {},
+        "jobs": [{"name": n, "argv": sleep, "outputs": []} for n in ("first", "second")]}))
+    res = tmp_path / "OUT"
+    r = subprocess.run([sys.executable, str(DEVICE / "run.py"), "--pack", str(pack),
+                        "--out", str(res), "--deadline-s", "4", "--reserve-s", "1",
+                        "--grace-s", "1", "--parallel", "1"],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 1
+    jobs = {j["name"]: j for j in json.loads((res / "summary.json").read_text())["jobs"]}
+    assert jobs["first"]["timed_out"] and 2.5 <= jobs["first"]["seconds"] < 6
+    assert jobs["second"]["status"] == "not_started" and jobs["second"]["rc"] is None
+
+
+def test_outputs_past_one_tarball_spill_into_more_parts_then_are_named(tmp_path):
+    run = _module("run")
+    logs, work = tmp_path / "logs", tmp_path / "work"
+    logs.mkdir()
+    (logs / "a.log").write_bytes(b"x" * 10)
+    for i in range(4):
+        (work / f"r{i}").mkdir(parents=True)
+        (work / f"r{i}" / "model.pt").write_bytes(b"w" * 60)
+    job = run.Job("a", ["true"], [f"r{i}" for i in range(4)] + ["gone"], None, {})
+    bins, left = run.collect_files([job], work, logs, limit=130, parts=2)
+    assert [len(b) for b in bins] == [3, 2]  # log + two checkpoints, then two
+    assert left == [] and "output gone missing" in job.notes
+    bins, left = run.collect_files([job], work, logs, limit=130, parts=1)
+    assert left == ["outputs/r2/model.pt", "outputs/r3/model.pt"]
