@@ -151,12 +151,25 @@ def install_wheels(pack: Path, wheels: list[str], site: Path, say) -> tuple[int,
 
 
 def link_inputs(pack: Path, inputs: list[str], work: Path) -> None:
-    """The jobs see each input at the relative path they name, inside ``work``."""
+    """The jobs see each input at the relative path they name, inside ``work``: hard links
+    (copies across file systems), not symbolic ones, which the collections' ``rglob`` and the
+    benchmark's run discovery would not follow below the top."""
     for rel in inputs:
-        dst = work / rel
+        src, dst = pack / "inputs" / rel, work / rel
+        if dst.exists():
+            continue
         dst.parent.mkdir(parents=True, exist_ok=True)
-        if not dst.exists():
-            dst.symlink_to((pack / "inputs" / rel).resolve())
+        if src.is_dir():
+            shutil.copytree(src, dst, copy_function=_link_or_copy)
+        else:
+            _link_or_copy(src, dst)
+
+
+def _link_or_copy(src: str | Path, dst: str | Path) -> None:
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)
 
 
 def host_info() -> dict[str, Any]:
@@ -236,6 +249,7 @@ def main(argv: list[str] | None = None) -> int:
     manifest = json.loads((a.pack / "pack.json").read_text())
     deadline = a.deadline_s or manifest.get("deadline_s") or 540.0
     parallel = a.parallel or manifest.get("parallel") or os.cpu_count() or 1
+    reserve = min(a.reserve_s, deadline / 4)  # a short deadline still leaves jobs most of it
     out, work = a.out, a.work or Path(tempfile.mkdtemp(prefix="w2e_device_"))
     stage = Path(tempfile.mkdtemp(prefix="w2e_results_"))
     logs = stage / "logs"
@@ -250,7 +264,7 @@ def main(argv: list[str] | None = None) -> int:
         runner_log.flush()
 
     say(f"pack {manifest['name']} ({manifest.get('commit')}): {len(manifest['jobs'])} jobs, "
-        f"{parallel} at a time, deadline {deadline:.0f} s")
+        f"{parallel} at a time, deadline {deadline:.0f} s, jobs end by {deadline - reserve:.0f} s")
     rc, wheel_s, pip_out = install_wheels(a.pack, manifest["wheels"], a.site, say)
     link_inputs(a.pack, manifest["inputs"], work)
     threads = max(1, (os.cpu_count() or 1) // parallel)
@@ -266,7 +280,7 @@ def main(argv: list[str] | None = None) -> int:
         for job in jobs:
             job.status = "skipped"
     else:
-        Runner(jobs, work, logs, env, parallel, t0 + deadline - a.reserve_s, a.grace_s,
+        Runner(jobs, work, logs, env, parallel, t0 + deadline - reserve, a.grace_s,
                say).run()
     bins, left_out = collect_files(jobs, work, logs, int(a.max_tar_mib * MIB), a.max_parts)
     tarballs = ["results.tar.gz"] + [f"results-{i}.tar.gz" for i in range(1, len(bins))]
@@ -276,8 +290,10 @@ def main(argv: list[str] | None = None) -> int:
         "wheels_rc": rc, "seconds": round(time.monotonic() - t0, 2), "tarballs": tarballs,
         "left_out": left_out,
         "jobs": [{"name": j.name, "argv": j.argv, "status": j.status, "rc": j.rc,
-                  "timed_out": j.timed_out, "seconds": round(j.end - j.start, 2)
-                  if j.end else None, "outputs": j.outputs, "notes": j.notes}
+                  "timed_out": j.timed_out, "timeout_s": j.timeout_s,
+                  "start_s": round(j.start - t0, 2) if j.start else None,
+                  "seconds": round(j.end - j.start, 2) if j.end else None,
+                  "outputs": j.outputs, "notes": j.notes}
                  for j in jobs],
     }
     if left_out:
