@@ -98,7 +98,7 @@ def main() -> None:
         r = w2e.manipulate(a.category, instances=[41], primitive="push")
         print(f"manipulate 1 object (load scene, observe, maps, act): {r.seconds:.1f} s")
         r = w2e.explore(a.category, instances=[30, 31, 32], primitive="push", budget=5,
-                        bar=1.0)
+                        similarity_bar=1.0)
         print(f"explore budget 5 on 3 objects: {r.seconds:.1f} s ({r.message})")
 
 

@@ -102,7 +102,7 @@ def main() -> None:
     torch.set_num_threads(1)
     model, meta = load_model(a.model, "cpu")
     cfg = ExploreConfig()
-    scorer = W2EExplorer(model, cfg, None, tuple(meta.get("aff_categories", ())),
+    scorer = W2EExplorer(model, cfg.finetuning, None, tuple(meta.get("aff_categories", ())),
                          tuple(meta.get("sim_categories", ())))
     world = SimWorld()
     rng = np.random.default_rng(a.seed)

@@ -25,8 +25,8 @@ def test_benchmark_cli_explores_evaluates_and_writes_tables(tmp_path):
                    "--primitives", "push", "--methods", "none", "random", "similarity",
                    "fulldata", "--seeds", "0", "1",
                    "--categories", "door", "--budgets", "1", "--explore-objects", "2",
-                   "--test-objects", "2", "--points", "16", "--dirs", "2",
-                   "--finetune-steps", "20", "--bar", "1.01", "--validate",
+                   "--test-objects", "2", "--points-per-object", "16", "--dirs-per-point", "2",
+                   "--finetune-steps", "20", "--similarity-bar", "1.01", "--validate",
                    "--bootstrap", "50", "--no-heatmaps", "--threads", "1", "--out", str(out)])
     assert rc == 0
     doc = json.loads((out / "benchmark.json").read_text())

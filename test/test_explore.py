@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
 from synthetic import Cloud, RuleWorld, synthetic_data
 
-from w2e_ros.core.config import ExploreConfig, ModelConfig
+from w2e_ros.core.config import ExploreConfig, FinetuneConfig, ModelConfig
 from w2e_ros.core.explore import Executed, cloud_proposer, explore, sample_candidates
 from w2e_ros.core.feasibility import Arm, approach_clear, arm_reachable
 from w2e_ros.core.finetune import W2EExplorer
@@ -31,7 +33,9 @@ def replay():
     return synthetic_data(obs_per_cat=4, per_obs=24, seed=1)
 
 
-def _explorer(replay, sim_bias: float | None = None, seed: int = 0, **kw) -> W2EExplorer:
+def _explorer(replay, sim_bias: float | None = None, seed: int = 0,
+              **kw) -> tuple[W2EExplorer, ExploreConfig]:
+    """An explorer of a small model and the loop's config (``kw``: any of its settings)."""
     torch.manual_seed(seed)
     model = W2EModel(SMALL)
     if sim_bias is not None:  # push every similarity to ~0 or ~1
@@ -40,9 +44,9 @@ def _explorer(replay, sim_bias: float | None = None, seed: int = 0, **kw) -> W2E
             model.sim_head.out.bias.fill_(sim_bias)
     kw = {"points_per_object": 32, "dirs_per_point": 4, "finetune_steps": 2,
           "finetune_min_steps": 2, **kw}
-    cfg = ExploreConfig(**kw)
-    return W2EExplorer(model, cfg, replay, ("cabinet",), ("cabinet", "faucet", "window"),
-                       seed=seed)
+    cfg = ExploreConfig.from_dict(kw)
+    return W2EExplorer(model, cfg.finetuning, replay, ("cabinet",),
+                       ("cabinet", "faucet", "window"), seed=seed), cfg
 
 
 def test_candidates_face_the_surface_and_favour_the_mask(novel):
@@ -61,9 +65,9 @@ def test_candidates_face_the_surface_and_favour_the_mask(novel):
 
 
 def test_loop_stops_at_the_bar_before_spending_anything(novel, replay):
-    exp = _explorer(replay, sim_bias=8.0)
+    exp, cfg = _explorer(replay, sim_bias=8.0)
     world = RuleWorld(novel)
-    res = explore(exp, world, list(range(6)), get_strategy("similarity"), exp.cfg, "push")
+    res = explore(exp, world, list(range(6)), get_strategy("similarity"), cfg, "push")
     assert res.stopped == "bar" and res.steps == [] and world.executed == []
     assert res.mean_similarity[0] > 0.9
     assert set(res.snapshots) == {0, 1, 2, 5}
@@ -72,10 +76,10 @@ def test_loop_stops_at_the_bar_before_spending_anything(novel, replay):
 def test_loop_spends_the_budget_when_similarity_stays_low(novel, replay):
     # budget 2 per object x 3 objects = 6 interactions, 2 a round: snapshots after the
     # rounds where 3 (b=1) and 6 (b=2) interactions were reached; b=5 is the final model
-    exp = _explorer(replay, sim_bias=-8.0, budget=2, round_size=2,
-                    snapshot_budgets=(1, 2, 5))
+    exp, cfg = _explorer(replay, sim_bias=-8.0, budget=2, round_size=2,
+                         snapshot_budgets=(1, 2, 5))
     world = RuleWorld(novel)
-    res = explore(exp, world, [0, 1, 2], get_strategy("similarity"), exp.cfg, "push")
+    res = explore(exp, world, [0, 1, 2], get_strategy("similarity"), cfg, "push")
     assert res.stopped == "budget" and len(res.steps) == 6 == len(world.executed)
     assert [s.step for s in res.steps] == [1, 2, 3, 4, 5, 6]
     assert [s.round for s in res.steps] == [1, 1, 2, 2, 3, 3]
@@ -89,7 +93,7 @@ def test_loop_spends_the_budget_when_similarity_stays_low(novel, replay):
 
 
 def test_similarity_strategy_executes_the_lowest_similarity_action(novel, replay):
-    exp = _explorer(replay, budget=1)
+    exp, cfg = _explorer(replay, budget=1)
     world = RuleWorld(novel)
     seen = {}
 
@@ -106,7 +110,7 @@ def test_similarity_strategy_executes_the_lowest_similarity_action(novel, replay
         def snapshot(self):
             return exp.snapshot()
 
-    explore(Spy(), world, list(range(6)), get_strategy("similarity"), exp.cfg, "push")
+    explore(Spy(), world, list(range(6)), get_strategy("similarity"), cfg, "push")
     sims = [s.similarity for s in seen["scored"]]
     obj = int(np.argmin([s.min() for s in sims]))
     i = int(np.argmin(sims[obj]))
@@ -197,7 +201,7 @@ def test_object_cap_spreads_a_budget_the_bar_would_give_to_one_object(novel):
     # the rest of the budget, with object_cap 1.5 (x budget 4 = 6) it stops at 6
     for cap, n0, stopped in ((0.0, 10, "budget"), (1.5, 6, "cap")):
         model, world = FakeModel([0.1, 0.8, 0.8], [0.0, 0.2, 0.2]), TaggedWorld(novel)
-        cfg = _fake_cfg(budget=4, round_size=3, per_object_per_round=2, sim_bar=0.9,
+        cfg = _fake_cfg(budget=4, round_size=3, per_object_per_round=2, similarity_bar=0.9,
                         object_cap=cap)
         res = explore(model, world, [0, 1, 2], get_strategy("similarity"), cfg, "push")
         targets = [int(s.target) for s in res.steps]
@@ -208,7 +212,7 @@ def test_object_cap_spreads_a_budget_the_bar_would_give_to_one_object(novel):
 def test_an_object_over_the_bar_is_dropped_while_the_others_continue(novel):
     # object 0 becomes familiar fast (+0.25 per interaction), the others slowly
     model, world = FakeModel([0.5] * 3, [0.25, 0.05, 0.05]), TaggedWorld(novel)
-    cfg = _fake_cfg(budget=3, round_size=3, per_object_per_round=1, sim_bar=0.9)
+    cfg = _fake_cfg(budget=3, round_size=3, per_object_per_round=1, similarity_bar=0.9)
     res = explore(model, world, [0, 1, 2], get_strategy("similarity"), cfg, "push")
     assert res.stopped == "budget" and len(res.steps) == 9
     rounds_of_0 = {s.round for s in res.steps if int(s.target) == 0}
@@ -220,7 +224,7 @@ def test_an_object_over_the_bar_is_dropped_while_the_others_continue(novel):
 
 def test_loop_stops_at_the_bar_once_every_object_passes_it(novel):
     model, world = FakeModel([0.5] * 3, [0.25] * 3), TaggedWorld(novel)
-    cfg = _fake_cfg(budget=5, round_size=3, per_object_per_round=1, sim_bar=0.9,
+    cfg = _fake_cfg(budget=5, round_size=3, per_object_per_round=1, similarity_bar=0.9,
                     snapshot_budgets=(1, 5))
     res = explore(model, world, [0, 1, 2], get_strategy("similarity"), cfg, "push")
     assert res.stopped == "bar" and len(res.steps) == 6 and len(model.rounds) == 2
@@ -331,9 +335,9 @@ def test_oracle_executes_the_pool_candidates_the_model_gets_most_wrong(novel):
 
 
 def test_none_strategy_spends_nothing_and_snapshots_the_initial_model(novel, replay):
-    exp = _explorer(replay)
+    exp, cfg = _explorer(replay)
     world = RuleWorld(novel)
-    res = explore(exp, world, [0, 1], get_strategy("none"), exp.cfg, "push")
+    res = explore(exp, world, [0, 1], get_strategy("none"), cfg, "push")
     assert res.stopped == "none" and not world.executed
     assert all(torch.equal(res.snapshots[b]["aff_head.out.bias"],
                            res.snapshots[0]["aff_head.out.bias"]) for b in (1, 2, 5))
@@ -357,7 +361,7 @@ def test_fine_tuning_fits_the_explored_interactions(novel):
     # no replay: the explored interaction alone must be learned (replay only anchors); no
     # prior either: with one interaction the default prior (5 / N) holds the model near its
     # trained weights on purpose (test_finetune checks that)
-    exp = _explorer(None, finetune_steps=30, finetune_lr=1e-3, prior=0.0)
+    exp, _ = _explorer(None, finetune_steps=30, finetune_lr=1e-3, prior=0.0)
     cloud = Cloud(novel.points[0], novel.normals[0], novel.movable[0])
     cands = sample_candidates(cloud, 16, 2, np.random.default_rng(1), mask=cloud.movable)
     i = int(np.argmin(cands.up[:, 2]))  # straight into the handle: a success
@@ -376,9 +380,10 @@ def test_loop_explores_simulated_objects_and_learns_from_the_outcomes():
     world = SimWorld()
     torch.manual_seed(0)
     model = W2EModel()
-    cfg = ExploreConfig(budget=1, points_per_object=16, dirs_per_point=2, finetune_steps=1,
-                        finetune_min_steps=1, snapshot_budgets=(1, 2))
-    exp = W2EExplorer(model, cfg, None, ("cabinet",), ("cabinet", "faucet", "window"))
+    cfg = ExploreConfig.from_dict(dict(budget=1, points_per_object=16, dirs_per_point=2,
+                                       finetune_steps=1, finetune_min_steps=1,
+                                       snapshot_budgets=(1, 2)))
+    exp = W2EExplorer(model, cfg.finetuning, None, ("cabinet",), ("cabinet", "faucet", "window"))
     targets = explore_targets(["kettle"], per_category=2)
     assert [t.instance for t in targets] == [30, 31]
     res = explore(exp, world, targets, get_strategy("similarity"), cfg, "pull")
@@ -398,9 +403,10 @@ def test_fewshot_spends_the_budget_per_object_over_all_novel_categories():
 
     torch.manual_seed(0)
     model = W2EModel(SMALL)
-    cfg = ExploreConfig(budget=1, points_per_object=8, dirs_per_point=2, finetune_steps=2,
-                        finetune_min_steps=2, snapshot_budgets=(1,), sim_bar=1.01,
-                        round_size=2)
+    cfg = ExploreConfig.from_dict(dict(budget=1, points_per_object=8, dirs_per_point=2,
+                                       finetune_steps=2, finetune_min_steps=2,
+                                       snapshot_budgets=(1,), similarity_bar=1.01,
+                                       round_size=2))
     meta = {"aff_categories": ["cabinet"], "sim_categories": ["cabinet", "faucet", "window"]}
     world = SimWorld(SMALL.num_points)
     runs = fewshot(model, meta, world, ["kettle", "door"], get_strategy("random"), cfg, "push",
@@ -417,8 +423,8 @@ def test_fewshot_spends_the_budget_per_object_over_all_novel_categories():
     # frozen: the affordance head adapts, the similarity head keeps its calibrated weights;
     # finetune (the reference): both move
     for update, sim_moves in (("frozen", False), ("finetune", True)):
-        c = ExploreConfig(**{**cfg.__dict__, "similarity_update": update,
-                             "finetune_steps": 20, "finetune_min_steps": 20})
+        c = replace(cfg, finetuning=replace(cfg.finetuning, similarity_update=update,
+                                            finetune_steps=20, finetune_min_steps=20))
         _, ex = fewshot(model, meta, world, ["kettle"], get_strategy("random"), c, "push",
                         per_category=2)["all"]
         moved = {name: not torch.equal(p, model.state_dict()[name])
@@ -427,7 +433,8 @@ def test_fewshot_spends_the_budget_per_object_over_all_novel_categories():
         assert any(v for k, v in moved.items() if k.startswith("sim_head")) == sim_moves, update
     with pytest.raises(ValueError, match="similarity update"):
         fewshot(model, meta, world, ["kettle"], get_strategy("random"),
-                ExploreConfig(similarity_update="sometimes"), "push", per_category=1)
+                ExploreConfig(finetuning=FinetuneConfig(similarity_update="sometimes")), "push",
+                per_category=1)
 
 
 def test_cli_explore_defaults_are_the_core_defaults():

@@ -7,7 +7,7 @@ import pytest
 import torch
 from synthetic import synthetic_data
 
-from w2e_ros.core.config import ExploreConfig, ModelConfig
+from w2e_ros.core.config import FinetuneConfig, ModelConfig
 from w2e_ros.core.finetune import Rows, W2EExplorer, balanced_weights
 from w2e_ros.core.model import W2EModel
 from w2e_ros.core.predict import FeatureCache
@@ -30,7 +30,7 @@ def replay():
 
 def _explorer(mode: str, replay=None, seed: int = 0, **kw) -> W2EExplorer:
     torch.manual_seed(seed)
-    cfg = ExploreConfig(**{"finetune": mode, "finetune_steps": 60, "finetune_min_steps": 60,
+    cfg = FinetuneConfig(**{"finetune": mode, "finetune_steps": 60, "finetune_min_steps": 60,
                            "finetune_lr": 3e-3, "anchor": 0.0, **kw})
     return W2EExplorer(W2EModel(SMALL), cfg, replay, ("cabinet",), SIM, seed=seed,
                        features=FeatureCache())
@@ -175,7 +175,7 @@ def test_snapshots_are_copies_that_rebuild_the_model(novel):
 
 def test_unknown_finetune_mode_is_refused():
     with pytest.raises(ValueError, match="finetune"):
-        W2EExplorer(W2EModel(SMALL), ExploreConfig(finetune="encoder"))
+        W2EExplorer(W2EModel(SMALL), FinetuneConfig(finetune="encoder"))
 
 
 def test_only_failures_and_no_replay_leave_the_affordance_head_alone(novel):
@@ -210,7 +210,7 @@ def test_a_balanced_similarity_stays_balanced_while_fine_tuning(novel):
     losses = {}
     for balanced in (False, True):
         torch.manual_seed(0)
-        exp = W2EExplorer(W2EModel(SMALL), ExploreConfig(), None, ("cabinet",), SIM, seed=0,
+        exp = W2EExplorer(W2EModel(SMALL), FinetuneConfig(), None, ("cabinet",), SIM, seed=0,
                           features=FeatureCache(), balanced_similarity=balanced)
         exp.add_data(novel, rows)
         r = exp.explored
@@ -248,7 +248,7 @@ def test_default_fine_tuning_learns_what_it_explored_within_its_prior():
         for rows in (few, None):
             model, _ = load_model(default_checkpoint("pull"), "cpu")
             start = {k: v.detach().clone() for k, v in model.named_parameters()}
-            exp = W2EExplorer(model, ExploreConfig(**kw), None, SIM, (), seed=0,
+            exp = W2EExplorer(model, FinetuneConfig(**kw), None, SIM, (), seed=0,
                               features=FeatureCache())
             exp.add_data(data, rows)
             before = exp.explored_fit()["fit_auroc"]
@@ -259,7 +259,7 @@ def test_default_fine_tuning_learns_what_it_explored_within_its_prior():
                                  for k, p in model.named_parameters())
     before, after = fits["default", 180]
     assert after >= before + 0.15, fits  # measured: 0.63 -> 0.88
-    assert fits["free", 180][1] >= ExploreConfig().fit_target, fits  # no prior: memorised
+    assert fits["free", 180][1] >= FinetuneConfig().fit_target, fits  # no prior: memorised
     # 30 interactions may move the model far less than 180 (measured 1.1 vs 5.0), and far
     # less than an unconstrained fit on the same 30 (29)
     assert moved["default", 30] < moved["default", 180] / 3, moved

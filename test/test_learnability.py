@@ -8,7 +8,7 @@ import pytest
 import torch
 from synthetic import synthetic_data
 
-from w2e_ros.core.config import ExploreConfig, ModelConfig
+from w2e_ros.core.config import ExploreConfig, FinetuneConfig, ModelConfig
 from w2e_ros.core.learnability import LearnabilityConfig, run_learnability
 from w2e_ros.core.model import W2EModel, save_model
 
@@ -41,8 +41,8 @@ def test_learnability_curves_rise_with_the_explored_interactions(setup):
         model=str(d / "model.pt"), pool_data=str(d / "pool"), test_data=str(d / "test"),
         out=str(d / "out"), sizes=(0, 12, 1000), seeds=(0,), selections=("random", "oracle"),
         categories=NOVEL,
-        explore=ExploreConfig(finetune_steps=60, finetune_min_steps=60, finetune_lr=3e-3,
-                                  anchor=0.0))
+        explore=ExploreConfig(finetuning=FinetuneConfig(
+            finetune_steps=60, finetune_min_steps=60, finetune_lr=3e-3, anchor=0.0)))
     summary = run_learnability(cfg)
     rows = [json.loads(s) for s in (d / "out" / "rows.jsonl").read_text().splitlines()]
     assert [(r["selection"], r["n"]) for r in rows] == [

@@ -168,9 +168,11 @@ def test_exploration_runs_on_cloud_outcomes():
     from w2e_ros.core.strategies import get_strategy
 
     torch.manual_seed(0)
-    cfg = ExploreConfig(budget=1, points_per_object=16, dirs_per_point=2, finetune_steps=1,
-                        finetune_min_steps=1, snapshot_budgets=(1,))
-    exp = W2EExplorer(W2EModel(), cfg, None, ("cabinet",), ("cabinet", "faucet", "window"))
+    cfg = ExploreConfig.from_dict(dict(budget=1, points_per_object=16, dirs_per_point=2,
+                                       finetune_steps=1, finetune_min_steps=1,
+                                       snapshot_budgets=(1,)))
+    exp = W2EExplorer(W2EModel(), cfg.finetuning, None, ("cabinet",),
+                      ("cabinet", "faucet", "window"))
     res = explore(exp, SimWorld(outcome_source="clouds"), explore_targets(["microwave"], 2),
                   get_strategy("similarity"), cfg, "push")
     assert len(res.steps) == 2 and exp.num_explored == 2

@@ -114,8 +114,9 @@ def _benchmark_args(runs: Path, out: Path) -> list[str]:
     return ["benchmark", "--runs", str(runs), "--combos", "cfw", "--primitives", "push",
             "--methods", "none", "random", "similarity", "--seeds", "0", "1",
             "--categories", "door", "--budgets", "1", "--explore-objects", "2",
-            "--test-objects", "2", "--points", "16", "--dirs", "2", "--finetune-steps", "20",
-            "--bar", "1.01", "--validate", "--bootstrap", "50", "--threads", "1",
+            "--test-objects", "2", "--points-per-object", "16", "--dirs-per-point", "2",
+            "--finetune-steps", "20",
+            "--similarity-bar", "1.01", "--validate", "--bootstrap", "50", "--threads", "1",
             "--out", str(out)]
 
 

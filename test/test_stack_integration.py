@@ -79,7 +79,7 @@ def test_explore_runs_real_trials_and_fine_tunes_the_model(stack):
     t0 = time.perf_counter()
     # budget 1 = one interaction per object: two doors, two interactions
     res = client.explore(CATEGORY, instances=EXPLORE_INSTANCES, primitive="pull", budget=1,
-                         bar=0.99)
+                         similarity_bar=0.99)
     print(f"\n[stack] explore budget 1: {time.perf_counter() - t0:.1f} s: {res.message}")
     assert res.success, res.message
     assert len(EXPLORE_INSTANCES) == 2

@@ -15,13 +15,8 @@ import sys
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from w2e_ros.core.config import (
-    FINETUNE_MODES,
-    LEARNABILITY_SELECTIONS,
-    SIMILARITY_UPDATES,
-    ExploreConfig,
-    TrainConfig,
-)
+from w2e_ros.core.config import LEARNABILITY_SELECTIONS, ExploreConfig, TrainConfig
+from w2e_ros.core.settings import add_arguments, from_namespace
 from w2e_ros.core.strategies import STRATEGIES
 
 if TYPE_CHECKING:
@@ -232,81 +227,19 @@ def _run_train(a: argparse.Namespace) -> int:
     return 0
 
 
-def _at_least_one(text: str) -> int:
-    """argparse type: a round that may take nothing from any object would explore nothing."""
-    n = int(text)
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {n}")
-    return n
+_RUN_SETTINGS = ("budget", "seed", "snapshot_budgets")
+"""ExploreConfig settings a verb sets from its own flags (benchmark: --budgets, --seeds)."""
 
 
-def _add_explore_args(p: argparse.ArgumentParser) -> None:
-    """The few-shot loop's settings, shared by ``fewshot`` and ``benchmark``; the defaults are
-    ExploreConfig's, so the CLI, the nodes and the core agree."""
-    d = ExploreConfig()
-    p.add_argument("--points", type=int, default=d.points_per_object,
-                   help="candidate points per object")
-    p.add_argument("--dirs", type=int, default=d.dirs_per_point, help="candidate actions per point")
-    p.add_argument("--round-size", type=int, default=d.round_size,
-                   help="interactions per round between model updates (0: objects / 2)")
-    p.add_argument("--per-object-per-round", type=_at_least_one, default=d.per_object_per_round,
-                   help="most interactions one object may take in one round")
-    p.add_argument("--object-cap", type=float, default=d.object_cap,
-                   help="most interactions one object may take, as a multiple of the "
-                        "budget (0: no cap; the bar can otherwise leave the whole rest of "
-                        "the budget to the few objects that never pass it)")
-    p.add_argument("--finetune", default=d.finetune, choices=list(FINETUNE_MODES),
-                   help="heads: the heads on cached features (encoder frozen); decoder: also "
-                        "the encoder's feature propagation, on cached set-abstraction levels; "
-                        "all: every weight")
-    p.add_argument("--finetune-steps", type=int, default=d.finetune_steps,
-                   help="most gradient steps per update (stops when the explored-set fit "
-                        "levels off)")
-    p.add_argument("--finetune-lr", type=float, default=d.finetune_lr,
-                   help="fine-tuning learning rate")
-    p.add_argument("--finetune-clouds", type=int, default=d.finetune_clouds,
-                   help="with --finetune decoder | all: explored clouds per step")
-    p.add_argument("--encoder-lr-scale", type=float, default=d.encoder_lr_scale,
-                   help="with --finetune decoder | all: the encoder's learning rate relative "
-                        "to the heads'")
-    p.add_argument("--anchor", type=float, default=d.anchor,
-                   help="L2-SP weight pulling the fine-tuned heads towards the trained ones "
-                        "(0: off); without it a few interactions made the model worse")
-    p.add_argument("--prior", type=float, default=d.prior,
-                   help="L2-SP weight times the number of explored interactions: the anchor "
-                        "adds prior / N, strong after a few interactions, weak after many "
-                        "(0: off)")
-    p.add_argument("--fit-target", type=float, default=d.fit_target,
-                   help="a fit stops once it ranks the explored set at this AUROC (0: fit to "
-                        "the loss plateau)")
-    p.add_argument("--replay-fraction", type=float, default=d.replay_fraction,
-                   help="share of the training interactions replayed (distinct ones)")
-    p.add_argument("--no-mask", action="store_true",
-                   help="propose candidates without the simulator's movable mask (what a real "
-                        "robot has)")
-    p.add_argument("--bar", type=float, default=d.sim_bar,
-                   help="mean similarity of an object that ends its exploration (>1: never)")
-    p.add_argument("--check-approach", action="store_true",
-                   help="as the stack's planner does (check_approach): explore only candidates "
-                        "whose approach does not run into the observed cloud; the benchmark's "
-                        "success probe then executes the best such action, as manipulate does")
-    p.add_argument("--similarity-update", default=d.similarity_update,
-                   choices=list(SIMILARITY_UPDATES),
-                   help="finetune: each fit also trains the similarity head on what was "
-                        "explored (the reference); frozen: it stays as calibrated")
+def _add_explore_args(p: argparse.ArgumentParser, skip: tuple[str, ...] = _RUN_SETTINGS) -> None:
+    """The few-shot loop's settings (ExploreConfig and its FinetuneConfig), shared by
+    ``fewshot``, ``learnability`` and ``benchmark``: one flag per setting, named, typed,
+    defaulted and explained by the dataclass field (w2e_ros.core.settings)."""
+    add_arguments(p, ExploreConfig, skip)
 
 
 def _explore_config(a: argparse.Namespace, **kw: object) -> ExploreConfig:
-    return ExploreConfig(points_per_object=a.points, dirs_per_point=a.dirs,
-                         round_size=a.round_size, object_cap=a.object_cap,
-                         per_object_per_round=a.per_object_per_round, finetune=a.finetune,
-                         finetune_steps=a.finetune_steps, finetune_lr=a.finetune_lr,
-                         finetune_clouds=a.finetune_clouds,
-                         encoder_lr_scale=a.encoder_lr_scale,
-                         replay_fraction=a.replay_fraction, anchor=a.anchor,
-                         prior=a.prior, fit_target=a.fit_target,
-                         use_mask=not a.no_mask, check_approach=a.check_approach,
-                         sim_bar=a.bar, similarity_update=a.similarity_update, **kw)
+    return from_namespace(ExploreConfig, a, **kw)
 
 
 def _add_fewshot(sub: argparse._SubParsersAction) -> None:
@@ -323,12 +256,9 @@ def _add_fewshot(sub: argparse._SubParsersAction) -> None:
                    help="all novel categories in one run, or one run per category")
     p.add_argument("--categories", nargs="+", default=None,
                    help="novel categories to explore (default: the 11 not in the combination)")
-    p.add_argument("--budget", type=int, default=5,
-                   help="interactions per explore object (chosen globally over the objects)")
     p.add_argument("--objects", type=int, default=10, help="explore instances per category")
-    _add_explore_args(p)
+    _add_explore_args(p, skip=("snapshot_budgets",))  # with --budget and --seed
     p.add_argument("--out", required=True, help="directory for adapted models and records")
-    p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=2)
     p.set_defaults(func=_run_fewshot)
 
@@ -354,8 +284,7 @@ def _run_fewshot(a: argparse.Namespace) -> int:
     replay = None
     if a.replay_data:
         replay = replay_data(InteractionData.load(a.replay_data), meta, primitive)
-    cfg = _explore_config(a, budget=a.budget, seed=a.seed,
-                          snapshot_budgets=tuple(b for b in (1, 2, 5) if b <= a.budget)
+    cfg = _explore_config(a, snapshot_budgets=tuple(b for b in (1, 2, 5) if b <= a.budget)
                           or (a.budget,))
     runs = fewshot(model, meta, SimWorld(model.cfg.num_points), cats, get_strategy(a.strategy),
                    cfg, primitive, replay, a.mode, a.objects)
@@ -524,11 +453,11 @@ def _add_benchmark(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--mode", default="all", choices=["all", "per-category"])
     p.add_argument("--probe", default="proposal", choices=["proposal", "maps"],
                    help="sample-success candidates: the proposal distribution (what the model "
-                        "explores), or every movable point x --dirs hemisphere frames (what the "
-                        "stack's manipulate scores)")
+                        "explores), or every movable point x --probe-dirs hemisphere frames "
+                        "(what the stack's manipulate scores)")
     p.add_argument("--probe-dirs", type=int, default=None,
-                   help="sample-success frames per point (default: --dirs; the stack's "
-                        "manipulate scores 16)")
+                   help="sample-success frames per point (default: --dirs-per-point; the "
+                        "stack's manipulate scores 16)")
     p.add_argument("--categories", nargs="+", default=None,
                    help="only these novel categories (reduced run)")
     p.add_argument("--explore-objects", type=int, default=10, help="per novel category")
@@ -576,7 +505,8 @@ def _run_benchmark(a: argparse.Namespace) -> int:
         methods=tuple(a.methods), budgets=tuple(a.budgets), mode=a.mode,
         categories=tuple(a.categories) if a.categories else None,
         explore_objects=a.explore_objects, test_objects=a.test_objects, validate=a.validate,
-        eval_points=a.points, eval_dirs=a.probe_dirs or a.dirs, probe=a.probe,
+        eval_points=a.points_per_object,
+        eval_dirs=a.probe_dirs or a.dirs_per_point, probe=a.probe,
         heatmaps=not a.no_heatmaps, bootstrap=a.bootstrap, explore=_explore_config(a))
     if (a.merge or a.include_summary) and not a.summarize_only:
         print("w2e benchmark: --merge and --include-summary go with --summarize-only",

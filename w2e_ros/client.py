@@ -43,6 +43,7 @@ from w2e_msgs.action import Explore as ExploreAction
 from w2e_msgs.msg import ExplorationProgress, Interaction, SceneObject, SegmentedObjects
 from w2e_msgs.srv import LoadScene, Manipulate, PredictMaps
 
+from w2e_ros.core.config import ExploreConfig
 from w2e_ros.ros.action_client import LockedActionClient
 from w2e_ros.ros.futures import StackError, WaitTimeoutError, wait_future
 from w2e_ros.ros.pointcloud import arrays_to_cloud, cloud_to_arrays
@@ -321,7 +322,8 @@ class W2EClient:
 
     # --- the user-facing calls --------------------------------------------------------------
     def start_explore(self, category: str, instances: Iterable[int] = (),
-                      primitive: str = "pull", budget: int = 5, bar: float = 0.9,
+                      primitive: str = "pull", budget: int = 5,
+                      similarity_bar: float = ExploreConfig.similarity_bar,
                       object_ids: Iterable[int] = (), session: str = "",
                       on_progress: Callable[[Step], None] | None = None,
                       connect: float = 10.0) -> ExploreTask:
@@ -333,11 +335,13 @@ class W2EClient:
             raise StackCallError("action explore is not available")
         goal = ExploreAction.Goal(category=category, instances=[int(i) for i in instances],
                                   object_ids=[int(i) for i in object_ids], primitive=primitive,
-                                  budget=int(budget), similarity_bar=float(bar), session=session)
+                                  budget=int(budget), similarity_bar=float(similarity_bar),
+                                  session=session)
         return ExploreTask(self._explore, goal, on_progress, connect, self._tasks)
 
     def explore(self, category: str, instances: Iterable[int] = (), primitive: str = "pull",
-                budget: int = 5, bar: float = 0.9, object_ids: Iterable[int] = (),
+                budget: int = 5, similarity_bar: float = ExploreConfig.similarity_bar,
+                object_ids: Iterable[int] = (),
                 timeout: float = 1800.0,
                 on_progress: Callable[[Step], None] | None = None,
                 session: str = "") -> ExploreResult:
@@ -347,8 +351,8 @@ class W2EClient:
         Blocks until the end: :meth:`start_explore` and :meth:`ExploreTask.result`; after
         ``timeout`` s the goal is cancelled (the session continues on the next call) and
         StackCallError raised."""
-        task = self.start_explore(category, instances, primitive, budget, bar, object_ids,
-                                  session, on_progress)
+        task = self.start_explore(category, instances, primitive, budget, similarity_bar,
+                                  object_ids, session, on_progress)
         try:
             return task.result(timeout)
         except StackCallError:

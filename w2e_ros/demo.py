@@ -22,6 +22,7 @@ import time
 from pathlib import Path
 
 from w2e_ros.core.categories import load_categories
+from w2e_ros.core.config import ExploreConfig
 from w2e_ros.core.strategies import STRATEGIES
 from w2e_ros.paths import default_checkpoint
 
@@ -38,8 +39,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--primitive", default="pull", choices=["push", "pull"])
     p.add_argument("--budget", type=int, default=5,
                    help="exploration interactions per explore instance (the paper's budget)")
-    p.add_argument("--bar", type=float, default=0.9,
-                   help="mean similarity at which an object is no longer explored")
+    p.add_argument("--similarity-bar", type=float, default=ExploreConfig.similarity_bar,
+                   help="mean similarity at which an object is no longer explored (the "
+                        "request's similarity_bar)")
     p.add_argument("--explore-instances", type=int, default=6,
                    help="EXPLORE-split instances in the scene while exploring")
     p.add_argument("--test-instances", type=int, default=10,
@@ -154,7 +156,8 @@ def run(a: argparse.Namespace) -> int:
         pngs = [_heatmaps(w2e, a.category, test[0], a.primitive, out, "before")]
         before = _manipulate_each(w2e, a.category, test, a.primitive, "before")
         explored = w2e.explore(
-            a.category, instances=explore, primitive=a.primitive, budget=a.budget, bar=a.bar,
+            a.category, instances=explore, primitive=a.primitive, budget=a.budget,
+            similarity_bar=a.similarity_bar,
             on_progress=lambda s: print(
                 f"[demo]   step {s.step}: object {s.action.object_id} similarity "
                 f"{s.predicted_similarity:.2f} -> {'success' if s.success else 'no motion'} "
@@ -165,7 +168,8 @@ def run(a: argparse.Namespace) -> int:
     summary = {
         "category": a.category, "primitive": a.primitive, "checkpoint": str(ckpt),
         "test_instances": test, "explore_instances": explore, "budget": a.budget,
-        "bar": a.bar, "strategy": a.strategy, "seed": a.seed, "replay_data": a.replay_data,
+        "similarity_bar": a.similarity_bar, "strategy": a.strategy, "seed": a.seed,
+        "replay_data": a.replay_data,
         "success_rate_before": before.success_rate, "success_rate_after": after.success_rate,
         "before": _per_instance(test, before), "after": _per_instance(test, after),
         "explore": {"ok": explored.success, "message": explored.message,

@@ -27,7 +27,7 @@ import logging
 import time
 from collections import defaultdict
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -244,8 +244,8 @@ def _run_one(run: _Run) -> dict[str, Any]:
     torch.manual_seed(seed)
     model, meta = load_model(ckpt)
     strategy = get_strategy(strat_name)
-    ecfg = ExploreConfig(**{**asdict(cfg.explore), "budget": max_budget,
-                            "snapshot_budgets": tuple(cfg.budgets), "seed": seed})
+    ecfg = replace(cfg.explore, budget=max_budget, snapshot_budgets=tuple(cfg.budgets),
+                   seed=seed)
     train_all = resolve(run.train)
     replay = None
     if train_all is not None and strategy.explores:

@@ -271,7 +271,7 @@ def explore(model: ExplorationModel, world: ExplorationWorld, targets: Sequence[
             stopped = "cancelled"
             break
         if strategy.stops_at_bar:
-            active = [i for i in active if obj_mean[i] <= cfg.sim_bar]
+            active = [i for i in active if obj_mean[i] <= cfg.similarity_bar]
             if not active:
                 stopped = "bar"
                 break
@@ -383,7 +383,7 @@ def fewshot(model: W2EModel, meta: dict, world: ExplorationWorld, categories: Se
     """
     if mode not in ("all", "per-category"):
         raise ValueError(f"unknown mode {mode!r} (all | per-category)")
-    train_sim = trains_similarity(meta, cfg)
+    train_sim = trains_similarity(meta, cfg.finetuning)
     groups = {"all": list(categories)} if mode == "all" else {c: [c] for c in categories}
     aff, sim = tuple(meta.get("aff_categories", ())), tuple(meta.get("sim_categories", ()))
     initial = {k: v.detach().clone() for k, v in model.state_dict().items()}
@@ -391,7 +391,7 @@ def fewshot(model: W2EModel, meta: dict, world: ExplorationWorld, categories: Se
     for name, cats in groups.items():
         m = copy.deepcopy(model)
         m.load_state_dict(initial)
-        explorer = W2EExplorer(m, cfg, replay, aff, sim,
+        explorer = W2EExplorer(m, cfg.finetuning, replay, aff, sim,
                                train_similarity=train_sim,
                                balanced_similarity=similarity_is_balanced(meta),
                                seed=cfg.seed)

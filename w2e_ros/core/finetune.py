@@ -32,7 +32,7 @@ import torch
 import torch.nn.functional as F
 
 from w2e_ros.core.actions import encode_rotation
-from w2e_ros.core.config import FINETUNE_MODES, SIMILARITY_UPDATES, ExploreConfig
+from w2e_ros.core.config import FINETUNE_MODES, SIMILARITY_UPDATES, FinetuneConfig
 from w2e_ros.core.data import InteractionData
 from w2e_ros.core.metrics import auroc
 from w2e_ros.core.model import W2EModel
@@ -90,7 +90,7 @@ def similarity_is_balanced(meta: dict) -> bool:
     return bool((meta.get("calibration") or {}).get("balanced", False))
 
 
-def trains_similarity(meta: dict, cfg: ExploreConfig) -> bool:
+def trains_similarity(meta: dict, cfg: FinetuneConfig) -> bool:
     """Whether fitting should train the similarity head: only a model with similarity
     categories has one worth training, and ``similarity_update="frozen"`` keeps it as
     calibrated."""
@@ -114,7 +114,8 @@ class W2EExplorer:
     """The learned model as an ExplorationModel: scores candidates and fine-tunes on every
     explored interaction plus a replay of the training data (with its training roles)."""
 
-    def __init__(self, model: W2EModel, cfg: ExploreConfig, replay: InteractionData | None = None,
+    def __init__(self, model: W2EModel, cfg: FinetuneConfig,
+                 replay: InteractionData | None = None,
                  aff_categories: Sequence[str] = (), sim_categories: Sequence[str] = (),
                  train_similarity: bool = True, seed: int = 0,
                  features: FeatureCache | None = None,

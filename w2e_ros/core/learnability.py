@@ -186,7 +186,7 @@ def run_learnability(cfg: LearnabilityConfig) -> dict:
                       "picked_unexpected": float((ok & said_no).mean())}
             m = copy.deepcopy(model)
             m.load_state_dict(initial)
-            ecfg = ExploreConfig(**{**asdict(cfg.explore), "seed": seed})
+            ecfg = cfg.explore.finetuning
             explorer = W2EExplorer(m, ecfg, replay, meta.get("aff_categories", ()),
                                    meta.get("sim_categories", ()),
                                    train_similarity=trains_similarity(meta, ecfg),
@@ -293,7 +293,8 @@ def _summarize(rows: list[dict], refs: dict, cfg: LearnabilityConfig, prim: str)
     metrics = ("fscore", "auroc", "ap", "valid_auroc", "simcorr_auroc", "picked_success")
     summary: dict = {"primitive": prim, "references": refs, "curves": {}}
     lines = [f"# Learnability ({prim})", "",
-             f"Fine-tuned on N pool interactions ({cfg.explore.finetune} fine-tuning), judged "
+             f"Fine-tuned on N pool interactions ({cfg.explore.finetuning.finetune} "
+             "fine-tuning), judged "
              f"on {'held-out explore (validation)' if cfg.validate else 'test'} instances of "
              f"the novel categories; mean ± std over seeds {list(cfg.seeds)}. Values in %.", "",
              "| selection | N | " + " | ".join(metrics) + " |",

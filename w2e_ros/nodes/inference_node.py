@@ -35,7 +35,7 @@ from std_srvs.srv import Trigger
 from w2e_msgs.msg import AffordanceMap, Interaction
 from w2e_msgs.srv import PredictMaps, UpdateModel
 
-from w2e_ros.core.config import ExploreConfig
+from w2e_ros.core.config import FinetuneConfig
 from w2e_ros.core.explore import Candidates, Executed, map_candidates
 from w2e_ros.core.finetune import W2EExplorer, similarity_is_balanced
 from w2e_ros.core.model import W2EModel, default_device, load_model, save_model
@@ -48,7 +48,7 @@ from w2e_ros.ros.conversions import (
     interaction_to_action,
     outcome_to_trial_result,
 )
-from w2e_ros.ros.params import declare_typed_parameters, describe, param
+from w2e_ros.ros.params import declare_typed_parameters, describe, param, setting_param
 from w2e_ros.ros.peers import announce
 from w2e_ros.ros.pointcloud import (
     CloudFormatError,
@@ -63,9 +63,6 @@ from w2e_ros.ros.state import scoped_dir, state_scope
 
 if TYPE_CHECKING:
     from w2e_ros.core.data import InteractionData
-
-_FT = ExploreConfig()  # the core's fine-tuning defaults, so node and CLI agree
-
 
 @dataclass
 class InferenceSettings:
@@ -91,16 +88,12 @@ class InferenceSettings:
                                 max=256)
     num_best: int = param(8, "best / least familiar actions returned per object", min=1,
                           max=1000)
-    finetune: str = param(_FT.finetune, "heads: fine-tune the heads on cached features "
-                          "(encoder frozen) | decoder: also the encoder's feature propagation "
-                          "| all: every weight")
-    finetune_steps: int = param(_FT.finetune_steps, "most gradient steps per update_model "
-                                "call (stops when the explored-set fit levels off)", min=1,
-                                max=10000)
-    finetune_lr: float = param(_FT.finetune_lr, "Adam learning rate of the fine-tuning",
-                               min=0.0)
-    replay_fraction: float = param(_FT.replay_fraction, "share of the training interactions "
-                                   "replayed (distinct ones)", min=0.0, max=1.0)
+    # the core's fine-tuning settings (FinetuneConfig), so node and CLI agree
+    finetune: str = setting_param(FinetuneConfig, "finetune")
+    finetune_steps: int = setting_param(FinetuneConfig, "finetune_steps",
+                                        also="; here: per update_model call", min=1, max=10000)
+    finetune_lr: float = setting_param(FinetuneConfig, "finetune_lr", min=0.0)
+    replay_fraction: float = setting_param(FinetuneConfig, "replay_fraction", min=0.0, max=1.0)
     replay_timeout_s: float = param(
         300.0, "longest wait of update_model for the replay, which is encoded in the "
         "background after start-up (predict_maps answers meanwhile)", min=0.0)
@@ -226,9 +219,8 @@ class InferenceNode(Node):
             replay = load_training_data_from(data, method, combo, primitive, source=str(source))
             if REPLAY_PACK in data.meta:  # already the sample: replay every row of it
                 fraction = 1.0
-        cfg = ExploreConfig(finetune=s.finetune, finetune_steps=s.finetune_steps,
-                            finetune_lr=s.finetune_lr, replay_fraction=fraction,
-                            seed=s.seed)
+        cfg = FinetuneConfig(finetune=s.finetune, finetune_steps=s.finetune_steps,
+                             finetune_lr=s.finetune_lr, replay_fraction=fraction)
         explorer = W2EExplorer(model, cfg, aff_categories=aff_cats, sim_categories=sim_cats,
                                train_similarity=True, seed=s.seed,
                                balanced_similarity=similarity_is_balanced(meta))

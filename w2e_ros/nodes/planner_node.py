@@ -58,6 +58,7 @@ from w2e_msgs.msg import (
 from w2e_msgs.srv import Explore, LoadScene, Manipulate, PredictMaps, UpdateModel
 
 from w2e_ros.core.categories import load_categories
+from w2e_ros.core.config import ExploreConfig
 from w2e_ros.core.feasibility import DEFAULT_CHECK, Arm
 from w2e_ros.core.kinematics import BASE_POSE_DESCRIPTION, DEFAULT_BASE_POSE
 from w2e_ros.core.policy import ManipulatePolicy
@@ -74,7 +75,7 @@ from w2e_ros.ros.explore_service import (  # noqa: F401 - RosModel, RosWorld: th
     check_primitive,
 )
 from w2e_ros.ros.futures import StackError, wait_future
-from w2e_ros.ros.params import declare_typed_parameters, describe, param
+from w2e_ros.ros.params import declare_typed_parameters, describe, param, setting_param
 from w2e_ros.ros.peers import PeerWatch
 from w2e_ros.ros.qos import LATCHED_QOS, RELIABLE_QOS
 from w2e_ros.ros.spin import run_node
@@ -87,10 +88,11 @@ class PlannerSettings:
 
     strategy: str = param("similarity", "exploration strategy: similarity (Where2Explore), "
                           "where2act, nosim, confident, random")
-    points_per_object: int = param(256, "candidate contact points per object and step", min=1)
-    dirs_per_point: int = param(8, "candidate gripper frames per contact point", min=1)
-    default_bar: float = param(0.9, "similarity bar when the request gives 0", min=0.0,
-                               max=1.0)
+    points_per_object: int = setting_param(ExploreConfig, "points_per_object", min=1)
+    dirs_per_point: int = setting_param(ExploreConfig, "dirs_per_point", min=1)
+    similarity_bar: float = setting_param(
+        ExploreConfig, "similarity_bar", also="; here: the bar of an explore request "
+        "that gives 0 (a request's bar is in (0, 1])", min=0.0, max=1.0)
     max_budget: int = param(50, "largest budget an explore request may ask for", min=1)
     update_steps: int = param(0, "gradient steps per update (0: the inference node's default)",
                               min=0)

@@ -77,7 +77,7 @@ def check_primitive(primitive: str) -> None:
 
 
 def check_explore_request(req: Explore.Request | ExploreAction.Goal, max_budget: int,
-                          default_bar: float) -> float:
+                          similarity_bar: float) -> float:
     """ValueError saying what is wrong with an explore request; its similarity bar."""
     if req.category:
         load_categories().check_category(req.category)
@@ -88,7 +88,7 @@ def check_explore_request(req: Explore.Request | ExploreAction.Goal, max_budget:
         raise ValueError("budget must be > 0")
     if req.budget > max_budget:
         raise ValueError(f"budget {req.budget} exceeds max_budget {max_budget}")
-    bar = float(req.similarity_bar) or default_bar
+    bar = float(req.similarity_bar) or similarity_bar
     if not 0.0 < bar <= 1.0:
         raise ValueError(f"similarity_bar must be in (0, 1], got {bar}")
     return bar
@@ -324,7 +324,7 @@ class ExploreService:
                  should_stop: Callable[[], bool] | None) -> None:
         """Check the request, open (or resume) the session's run, run the loop."""
         node, s, prog = self.node, self.node.settings, call.progress
-        bar = check_explore_request(req, s.max_budget, s.default_bar)
+        bar = check_explore_request(req, s.max_budget, s.similarity_bar)
         session = open_session(node.log_dir, req.session, req.category, req.primitive,
                                resume=s.resume)
         ids, newer = node.targets(req.category, req.object_ids, req.instances)
@@ -347,7 +347,7 @@ class ExploreService:
                                    f"interaction(s) ({run.fitted} learned from)")
             model.restore()
         model.on_scored.append(lambda mean: self._flush_progress(prog, mean))
-        cfg = ExploreConfig(budget=int(req.budget), sim_bar=bar,
+        cfg = ExploreConfig(budget=int(req.budget), similarity_bar=bar,
                             points_per_object=s.points_per_object,
                             dirs_per_point=s.dirs_per_point, snapshot_budgets=(),
                             check_approach=s.check_approach, seed=s.seed)

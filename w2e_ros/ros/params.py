@@ -77,6 +77,21 @@ def param(default: Any, description: str, *, read_only: bool = False,
     return dataclasses.field(default=default, metadata=meta)
 
 
+def setting_param(config_cls: type, name: str, *, also: str = "",
+                  min: float | None = None, max: float | None = None) -> Any:  # noqa: A002
+    """A parameter that mirrors setting ``name`` of a core config dataclass
+    (``w2e_ros.core.settings``): the same name, default and description (``also`` appended),
+    so the node, the CLI and the core agree by construction. The field's annotation must be
+    the setting's type (checked when the parameters are declared); ``min`` / ``max``: the
+    range this node accepts."""
+    from w2e_ros.core.settings import leaf_fields
+
+    f, tp = leaf_fields(config_cls)[name]
+    meta = {"description": f.metadata["help"] + also, "read_only": False, "min": min,
+            "max": max, "setting": (config_cls.__name__, name, tp)}
+    return dataclasses.field(default=f.default, metadata=meta)
+
+
 def _descriptor(name: str, ptype: Parameter.Type, meta: typing.Mapping) -> ParameterDescriptor:
     d = ParameterDescriptor(
         name=name,
@@ -109,6 +124,10 @@ def declare_typed_parameters(node: Node, settings_cls: type[T], prefix: str = ""
     hints = typing.get_type_hints(settings_cls)
     values: dict[str, Any] = {}
     for f in dataclasses.fields(settings_cls):
+        mirrored = f.metadata.get("setting")
+        if mirrored and (mirrored[1] != f.name or mirrored[2] != hints[f.name]):
+            raise TypeError(f"parameter {f.name!r} mirrors {mirrored[0]}.{mirrored[1]} "
+                            f"({mirrored[2]!r}): same name and type expected")
         ptype = _TYPES.get(hints[f.name])
         if ptype is None:
             raise TypeError(f"parameter {f.name!r}: type {hints[f.name]!r} is not supported")
