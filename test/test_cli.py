@@ -1,0 +1,134 @@
+"""The ``w2e`` command line: every documented command parses, and the few-shot verbs' flags
+are ExploreConfig's settings, one flag each."""
+
+from __future__ import annotations
+
+import json
+import re
+import shlex
+from dataclasses import asdict
+from pathlib import Path
+
+import pytest
+
+from w2e_ros import cli
+from w2e_ros.core.config import ExploreConfig, FinetuneConfig
+from w2e_ros.core.settings import flag, leaf_fields
+
+ROOT = Path(__file__).resolve().parents[1]
+DOCUMENTS = [ROOT / "README.md", ROOT / "bench" / "REPRODUCE.md",
+             *sorted((ROOT / "docs").glob("*.md"))]
+COMMAND = ".venv/bin/w2e "
+ASSIGN = re.compile(r"^\s*(?:export\s+)?([A-Za-z_]\w*)=(\"[^\"]*\"|'[^']*'|\S*)\s*$")
+VAR = re.compile(r"\$(?:\{(\w+)\}|(\w+))")
+
+
+def _logical_lines(text: str) -> list[str]:
+    """Lines with their ``\\`` continuations joined."""
+    out: list[str] = []
+    for line in text.splitlines():
+        if out and out[-1].endswith("\\"):
+            out[-1] = out[-1][:-1] + " " + line.strip()
+        else:
+            out.append(line)
+    return out
+
+
+def _expand(text: str, env: dict[str, str]) -> str | None:
+    """``$NAME`` / ``${NAME}`` replaced from ``env``; None when one is unknown or the
+    expansion is more than a plain name (``${C% --seeds*}``)."""
+    if "${" in text and re.search(r"\$\{\w+[^\w}]", text):
+        return None
+    missing = [m.group(1) or m.group(2) for m in VAR.finditer(text)
+               if (m.group(1) or m.group(2)) not in env]
+    if missing:
+        return None
+    return VAR.sub(lambda m: env[m.group(1) or m.group(2)], text)
+
+
+def documented_commands() -> list[tuple[str, str]]:
+    """(where, argv text) of every ``.venv/bin/w2e ...`` command in the docs that can be
+    expanded: shell variables set by ``NAME="..."`` lines above it in the same file, and
+    loop variables (``for c in a b; do ...``) by their first value."""
+    found = []
+    for doc in DOCUMENTS:
+        env: dict[str, str] = {}
+        for n, line in enumerate(_logical_lines(doc.read_text()), 1):
+            m = ASSIGN.match(line)
+            if m:
+                value = _expand(m.group(2).strip("\"'"), env)
+                if value is not None:
+                    env[m.group(1)] = value
+                continue
+            loop = re.search(r"for (\w+) in ([^;]+);", line)
+            local = dict(env)
+            if loop:
+                local[loop.group(1)] = loop.group(2).split()[0]
+            for part in line.split(COMMAND)[1:]:
+                # the command ends where the shell's next one starts
+                argv = re.split(r"\s(?:&&|\|\||[;&|>]|2>|#)|`|\)$|;", part)[0].strip()
+                expanded = _expand(argv, local)
+                if expanded is not None and "<" not in expanded and "..." not in expanded:
+                    found.append((f"{doc.relative_to(ROOT)}:{n}", expanded))
+    return found
+
+
+def test_the_docs_hold_commands_to_check():
+    cmds = documented_commands()
+    assert len(cmds) > 50, cmds
+    verbs = {shlex.split(c)[0] for _, c in cmds}
+    assert {"collect", "train", "benchmark", "learnability", "demo"} <= verbs
+
+
+@pytest.mark.parametrize("where,command", documented_commands())
+def test_every_documented_w2e_command_parses(where, command):
+    parser = cli.build_parser()
+    try:
+        parser.parse_args(shlex.split(command))
+    except SystemExit as e:
+        pytest.fail(f"{where}: `w2e {command}` does not parse (exit {e.code})")
+
+
+def test_the_explore_flags_are_the_settings_one_each():
+    """fewshot / learnability / benchmark take one flag per setting of ExploreConfig and its
+    FinetuneConfig, named after the field (but the run's budget, seed and snapshots, which
+    learnability and benchmark set from their own flags)."""
+    names = leaf_fields(ExploreConfig)
+    assert set(leaf_fields(FinetuneConfig)) <= set(names)
+    assert "similarity_bar" in names and "sim_bar" not in names
+    for verb, skipped in (("fewshot", {"snapshot_budgets"}),
+                          ("benchmark", set(cli._RUN_SETTINGS)),
+                          ("learnability", set(cli._RUN_SETTINGS))):
+        sub = cli.build_parser()._subparsers._group_actions[0].choices[verb]
+        flags = {s for a in sub._actions for s in a.option_strings}
+        for name in names:
+            assert (flag(name) in flags) == (name not in skipped), (verb, name)
+        assert "--bar" not in flags and "--points" not in flags
+
+
+def test_flags_reach_the_config_without_copies():
+    parser = cli.build_parser()
+    a = parser.parse_args(["fewshot", "--model", "m", "--out", "o", "--budget", "3",
+                           "--similarity-bar", "1.01", "--no-use-mask", "--finetune", "all",
+                           "--prior", "0", "--points-per-object", "64"])
+    cfg = cli._explore_config(a, snapshot_budgets=(1,))
+    assert (cfg.budget, cfg.similarity_bar, cfg.use_mask, cfg.points_per_object) == (
+        3, 1.01, False, 64)
+    assert (cfg.finetuning.finetune, cfg.finetuning.prior) == ("all", 0.0)
+    assert cfg.finetuning.finetune_steps == FinetuneConfig().finetune_steps
+    with pytest.raises(SystemExit):  # a round that may take nothing explores nothing
+        parser.parse_args(["benchmark", "--per-object-per-round", "0"])
+
+
+def test_results_written_before_the_split_read_back():
+    """Committed results store ``asdict(ExploreConfig)`` flat, the bar as sim_bar."""
+    doc = json.loads((ROOT / "bench" / "results" / "benchmark.json").read_text())
+    flat = doc["config"]["explore"]
+    assert "sim_bar" in flat and "finetune_steps" in flat
+    cfg = ExploreConfig.from_dict(flat)
+    assert cfg.similarity_bar == flat["sim_bar"]
+    assert cfg.finetuning.finetune_steps == flat["finetune_steps"]
+    assert cfg.finetuning.prior == flat.get("prior", cfg.finetuning.prior)
+    assert ExploreConfig.from_dict(asdict(cfg)) == cfg
+    with pytest.raises(ValueError, match="unknown"):
+        ExploreConfig.from_dict({"bar": 0.9})
