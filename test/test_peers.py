@@ -143,8 +143,10 @@ def test_a_server_restarted_mid_request_fails_the_call_at_once(planner):
     # to start than the old one's lease): either way the call ends, naming the node
     assert ("inference_node restarted" in out["error"] or "inference_node is gone"
             in out["error"]) and out["error"].startswith("predict_maps: ")
-    # the next call of the same explore call (same pins) is refused before it is sent
-    with pytest.raises(StackError, match="restarted"):
+    # the next call of the same explore call (same pins) is refused before it is sent:
+    # "restarted" once the new process has announced itself, "gone" while it has not (seen
+    # under load in the full suite)
+    with pytest.raises(StackError, match="inference_node (restarted|is gone)"):
         node.call(node.predict_cli, PredictMaps.Request(), "predict_maps")
 
 
