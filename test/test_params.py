@@ -17,7 +17,13 @@ pytest.importorskip("rclpy")
 from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 
-from w2e_ros.ros.params import ParameterError, declare_typed_parameters, param  # noqa: E402
+from w2e_ros.core.config import ExploreConfig, FinetuneConfig  # noqa: E402
+from w2e_ros.ros.params import (  # noqa: E402
+    ParameterError,
+    declare_typed_parameters,
+    param,
+    setting_param,
+)
 from w2e_ros.ros.processes import pick_domain_id, ros_env, stop_process  # noqa: E402
 
 
@@ -49,6 +55,37 @@ def test_an_integer_for_a_float_parameter_is_the_float_it_means(ros_context):
         assert node.describe_parameter("rate_hz").description == "publishing rate (Hz)"
         assert node.get_parameter("workspace").type_ == Parameter.Type.DOUBLE_ARRAY
         assert node.set_parameters([Parameter("rate_hz", value=2.5)])[0].successful
+    finally:
+        node.destroy_node()
+
+
+@dataclass
+class _Mirrors:
+    similarity_bar: float = setting_param(ExploreConfig, "similarity_bar", also="; here",
+                                          min=0.0, max=1.0)
+    finetune_steps: int = setting_param(FinetuneConfig, "finetune_steps", min=1)
+
+
+def test_a_parameter_mirroring_a_setting_takes_its_default_and_description(ros_context):
+    node = Node("mirror_test", context=ros_context)
+    try:
+        s = declare_typed_parameters(node, _Mirrors)
+        assert (s.similarity_bar, s.finetune_steps) == (0.9, FinetuneConfig().finetune_steps)
+        assert node.describe_parameter("similarity_bar").description.startswith(
+            "mean similarity of an object that ends its exploration")
+        assert node.describe_parameter("similarity_bar").description.endswith("; here")
+
+        @dataclass
+        class Renamed:  # another name than the setting's: refused
+            bar: float = setting_param(ExploreConfig, "similarity_bar")
+
+        @dataclass
+        class Retyped:  # another type: refused
+            finetune_steps: float = setting_param(FinetuneConfig, "finetune_steps")
+
+        for cls in (Renamed, Retyped):
+            with pytest.raises(TypeError, match="mirrors"):
+                declare_typed_parameters(node, cls)
     finally:
         node.destroy_node()
 
