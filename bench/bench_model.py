@@ -38,7 +38,7 @@ def _time(fn, repeat: int) -> float:
     return float(np.median(ts))
 
 
-def _time_pair(a, b, repeat: int) -> tuple[float, float]:
+def time_pair(a, b, repeat: int) -> tuple[float, float]:
     """Median times of ``a`` and ``b`` run alternately, so a busy machine's load hits both
     alike."""
     a(), b()  # warm-up
@@ -100,8 +100,8 @@ def bench_map(model: W2EModel, N: int, K: int, repeat: int, naive_queries: int) 
             feats = model.encode(x)
             model.heads(feats[0, q], actions[0, q, 0])
 
-    t_ours, t_ours_unchunked = _time_pair(ours, ours_unchunked, repeat)
-    t_heads, t_unchunked = _time_pair(heads, unchunked, repeat)
+    t_ours, t_ours_unchunked = time_pair(ours, ours_unchunked, repeat)
+    t_heads, t_unchunked = time_pair(heads, unchunked, repeat)
     t_unsplit = _time(unsplit, max(1, repeat // 2))
     t_naive_q = _time(naive, 1) / naive_queries
     t_enc = _time(lambda: model.encode(x).detach(), repeat)

@@ -25,12 +25,12 @@ import argparse
 import os
 import subprocess
 import sys
-import time
 import types
 from pathlib import Path
 
 import numpy as np
 import torch
+from bench_model import time_pair  # this folder: run as a script
 
 from w2e_ros.core.categories import load_categories
 from w2e_ros.core.explore import cloud_proposer, sample_candidates
@@ -51,32 +51,20 @@ def module_at(rev: str, path: str, name: str) -> types.ModuleType:
     return mod
 
 
-def _pair(a, b, repeat: int) -> tuple[float, float]:
-    """Median seconds of ``a`` and ``b``, run alternately after one warm-up each."""
-    a(), b()
-    ta, tb = [], []
-    for _ in range(repeat):
-        for fn, ts in ((a, ta), (b, tb)):
-            t = time.perf_counter()
-            fn()
-            ts.append(time.perf_counter() - t)
-    return float(np.median(ta)), float(np.median(tb))
-
-
 def measure(old: types.ModuleType, cloud, a: argparse.Namespace,
             cuda: bool) -> tuple[np.ndarray, int, int]:
     """Seconds (sampling before, after; check before, after, on the GPU) on one cloud, the
     number of candidates and of clear ones."""
     prop = cloud_proposer(cloud, cloud.movable)
     rng = np.random.default_rng(0)
-    t_sb, t_sa = _pair(lambda: sample_candidates(cloud, a.points, a.dirs, rng, cloud.movable),
+    t_sb, t_sa = time_pair(lambda: sample_candidates(cloud, a.points, a.dirs, rng, cloud.movable),
                        lambda: sample_candidates(cloud, a.points, a.dirs, rng, proposer=prop),
                        a.repeat)
     c = sample_candidates(cloud, a.points, a.dirs, rng, proposer=prop)
     args = (cloud.points, cloud.points[c.point_index], c.up, c.forward, a.primitive)
     before, after = old.approach_hits(*args), approach_hits(*args)
     assert np.array_equal(before, after), "the numpy and the torch check disagree"
-    t_cb, t_ca = _pair(lambda: old.approach_hits(*args), lambda: approach_hits(*args), a.repeat)
+    t_cb, t_ca = time_pair(lambda: old.approach_hits(*args), lambda: approach_hits(*args), a.repeat)
     t_gpu = float("nan")
     if cuda:
         g = [torch.from_numpy(np.ascontiguousarray(x)).cuda() for x in args[:4]]
@@ -85,7 +73,7 @@ def measure(old: types.ModuleType, cloud, a: argparse.Namespace,
             approach_hits(*g, a.primitive)
             torch.cuda.synchronize()
 
-        t_gpu = _pair(on_gpu, on_gpu, a.repeat)[0]
+        t_gpu = time_pair(on_gpu, on_gpu, a.repeat)[0]
     return np.array([t_sb, t_sa, t_cb, t_ca, t_gpu]), len(c), int((after == 0).sum())
 
 

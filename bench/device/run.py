@@ -160,12 +160,13 @@ def link_inputs(pack: Path, inputs: list[str], work: Path) -> None:
             continue
         dst.parent.mkdir(parents=True, exist_ok=True)
         if src.is_dir():
-            shutil.copytree(src, dst, copy_function=_link_or_copy)
+            shutil.copytree(src, dst, copy_function=link_or_copy)
         else:
-            _link_or_copy(src, dst)
+            link_or_copy(src, dst)
 
 
-def _link_or_copy(src: str | Path, dst: str | Path) -> None:
+def link_or_copy(src: str | Path, dst: str | Path) -> None:
+    """Hard link where the file system allows (inputs cost no space), else a copy."""
     try:
         os.link(src, dst)
     except OSError:
