@@ -210,137 +210,200 @@ def explore(model: ExplorationModel, world: ExplorationWorld, targets: Sequence[
     are dropped before scoring (:func:`clear_candidates`): they are neither executed nor
     counted in an object's mean similarity; an object left without any is not explored.
     ``arm``: with a Panda, candidates the arm cannot follow (IK, joint limits, workspace box:
-    :func:`w2e_ros.core.feasibility.arm_reachable`) are dropped the same way."""
-    rng = rng or np.random.default_rng(cfg.seed)
-    n = len(targets)
-    total = max(0, cfg.budget * n - spent) if strategy.explores else 0
-    round_size = cfg.round_size or max(1, math.ceil(n / 2))
-    clouds = [world.observe(t) for t in targets]
-    groups = [str(getattr(t, "category", "all")) for t in targets]
-    mask_of = (lambda c: getattr(c, "movable", None)) if cfg.use_mask else (lambda c: None)
+    :func:`w2e_ros.core.feasibility.arm_reachable`) are dropped the same way.
 
-    check_device = getattr(model, "device", None)  # the model's GPU runs the check too
+    Each round: propose and score candidates, narrow the objects still explored, let the
+    strategy pick, execute, learn, snapshot, re-observe what moved (:class:`_Run`)."""
+    run = _Run(model, world, list(targets), strategy, cfg, primitive,
+               rng or np.random.default_rng(cfg.seed), arm, spent)
+    stop = should_stop or (lambda: False)
+    stopped = "budget" if strategy.explores else "none"
+    while True:
+        t0 = time.perf_counter()
+        cands = run.candidates()
+        scored = model.score(run.clouds, cands)
+        obj_mean = [float(np.mean(s.similarity)) if len(s.similarity) else 1.0
+                    for s in scored]
+        run.means.append(float(np.mean(obj_mean)))
+        if len(run.records) >= run.total:
+            break
+        if stop():
+            stopped = "cancelled"
+            break
+        ended = run.narrow(obj_mean)
+        if ended:
+            stopped = ended
+            break
+        picks = run.pick(scored)
+        if not picks:
+            stopped = "exhausted"
+            break
+        executed, cancelled = run.execute(picks, cands, scored, obj_mean, stop)
+        run.learn(executed, t0, on_step)
+        if cancelled:
+            stopped = "cancelled"
+            break
+        run.reobserve(executed)
+    return run.result(stopped)
 
-    def feasible(cloud: CloudLike, cands: Candidates) -> Candidates:
-        if cfg.check_approach:
+
+class _Run:
+    """One exploration run's state: each object's cloud, candidates (or hindsight pool),
+    interactions taken and whether it is still explored, and the records and snapshots."""
+
+    def __init__(self, model: ExplorationModel, world: ExplorationWorld, targets: list[Any],
+                 strategy: Strategy, cfg: ExploreConfig, primitive: str,
+                 rng: np.random.Generator, arm: Arm, spent: int) -> None:
+        self.model, self.world, self.targets = model, world, targets
+        self.strategy, self.cfg, self.primitive = strategy, cfg, primitive
+        self.rng, self.arm, self.spent = rng, arm, spent
+        n = len(targets)
+        self.total = max(0, cfg.budget * n - spent) if strategy.explores else 0
+        self.round_size = cfg.round_size or max(1, math.ceil(n / 2))
+        self.clouds = [world.observe(t) for t in targets]
+        self.groups = [str(getattr(t, "category", "all")) for t in targets]
+        self.check_device = getattr(model, "device", None)  # the model's GPU runs the check
+        self.labels: list[np.ndarray] | None = None
+        self.pools: list[Candidates] | None = None
+        if strategy.needs_labels:
+            self._hindsight_pools()
+        self.proposers = ([cloud_proposer(c, self._mask(c)) for c in self.clouds]
+                          if self.pools is None else [])
+        self.used: list[set[int]] = [set() for _ in targets]
+        self.taken = np.zeros(n, np.int64)  # interactions per object, this run
+        self.cap = math.ceil(cfg.object_cap * cfg.budget) if cfg.object_cap > 0 else None
+        self.active = list(range(n))
+        self.records: list[StepRecord] = []
+        self.means: list[float] = []
+        self.snapshots: dict[int, Any] = {0: model.snapshot()}
+        self.round = 0
+
+    def _mask(self, cloud: CloudLike) -> np.ndarray | None:
+        return getattr(cloud, "movable", None) if self.cfg.use_mask else None
+
+    def _feasible(self, cloud: CloudLike, cands: Candidates) -> Candidates:
+        """The candidates the robot can execute: approach clear, within the arm's reach."""
+        if self.cfg.check_approach:
             n = len(cands)
-            cands = clear_candidates(cloud, cands, primitive, device=check_device)
+            cands = clear_candidates(cloud, cands, self.primitive, device=self.check_device)
             log.debug("approach check: %d of %d candidates clear", len(cands), n)
-        if arm.kind != FLYING.kind and len(cands):
+        if self.arm.kind != FLYING.kind and len(cands):
             pts = np.asarray(cloud.points)
             keep = np.flatnonzero(arm_reachable(pts[cands.point_index], cands.up,
-                                                cands.forward, primitive, arm))
-            log.debug("%s reach: %d of %d candidates", arm.kind, len(keep), len(cands))
+                                                cands.forward, self.primitive, self.arm))
+            log.debug("%s reach: %d of %d candidates", self.arm.kind, len(keep), len(cands))
             cands = Candidates(cands.point_index[keep], cands.up[keep], cands.forward[keep],
                                None if cands.source is None else cands.source[keep])
         return cands
 
-    labels: list[np.ndarray] | None = None
-    pools: list[Candidates] | None = None
-    if strategy.needs_labels:  # hindsight: a fixed labelled pool per object (not counted)
-        pools = [feasible(c, sample_candidates(c, cfg.oracle_pool, 1, np.random.default_rng(
-            _stable(_name(t))), mask_of(c))) for c, t in zip(clouds, targets, strict=True)]
-        labels = [np.array([world.execute(t, p.action(c, i, primitive)).success
-                            for i in range(len(p))], np.float32)
-                  for c, t, p in zip(clouds, targets, pools, strict=True)]
-    proposers = [cloud_proposer(c, mask_of(c)) for c in clouds] if pools is None else []
-    used: list[set[int]] = [set() for _ in targets]
-    taken = np.zeros(n, np.int64)  # interactions per object, this run
-    cap = math.ceil(cfg.object_cap * cfg.budget) if cfg.object_cap > 0 else None
-    active = list(range(n))
-    records: list[StepRecord] = []
-    means: list[float] = []
-    snapshots: dict[int, Any] = {0: model.snapshot()}
-    stopped = "budget" if strategy.explores else "none"
-    rnd = 0
-    while True:
-        t0 = time.perf_counter()
-        if pools is not None:
-            cands = [_without(p, u) for p, u in zip(pools, used, strict=True)]
-        else:
-            cands = [feasible(c, sample_candidates(c, cfg.points_per_object, cfg.dirs_per_point,
-                                                   rng, proposer=p))
-                     for c, p in zip(clouds, proposers, strict=True)]
-        scored = model.score(clouds, cands)
-        obj_mean = [float(np.mean(s.similarity)) if len(s.similarity) else 1.0
-                    for s in scored]
-        means.append(float(np.mean(obj_mean)))
-        if len(records) >= total:
-            break
-        if should_stop is not None and should_stop():
-            stopped = "cancelled"
-            break
-        if strategy.stops_at_bar:
-            active = [i for i in active if obj_mean[i] <= cfg.similarity_bar]
-            if not active:
-                stopped = "bar"
-                break
-        if cap is not None:
-            active = [i for i in active if taken[i] < cap]
-            if not active:
-                stopped = "cap"
-                break
-        k = min(round_size, total - len(records))
+    def _hindsight_pools(self) -> None:
+        """A fixed labelled pool per object for the hindsight strategies (not counted)."""
+        cfg, prim = self.cfg, self.primitive
+        self.pools = [self._feasible(c, sample_candidates(
+            c, cfg.oracle_pool, 1, np.random.default_rng(_stable(_name(t))), self._mask(c)))
+            for c, t in zip(self.clouds, self.targets, strict=True)]
+        self.labels = [np.array([self.world.execute(t, p.action(c, i, prim)).success
+                                 for i in range(len(p))], np.float32)
+                       for c, t, p in zip(self.clouds, self.targets, self.pools, strict=True)]
+
+    def candidates(self) -> list[Candidates]:
+        """This round's candidates per object: fresh draws, or what is left of the pool."""
+        if self.pools is not None:
+            return [_without(p, u) for p, u in zip(self.pools, self.used, strict=True)]
+        cfg = self.cfg
+        return [self._feasible(c, sample_candidates(c, cfg.points_per_object,
+                                                    cfg.dirs_per_point, self.rng, proposer=p))
+                for c, p in zip(self.clouds, self.proposers, strict=True)]
+
+    def narrow(self, obj_mean: list[float]) -> str | None:
+        """Drop the objects past the bar or at their cap; why the run ends if none is left."""
+        if self.strategy.stops_at_bar:
+            self.active = [i for i in self.active if obj_mean[i] <= self.cfg.similarity_bar]
+            if not self.active:
+                return "bar"
+        if self.cap is not None:
+            self.active = [i for i in self.active if self.taken[i] < self.cap]
+            if not self.active:
+                return "cap"
+        return None
+
+    def pick(self, scored: list[Scored]) -> list[tuple[int, int]]:
+        """The strategy's (active object, candidate) picks for this round."""
+        k = min(self.round_size, self.total - len(self.records))
         cand_labels = None
-        if labels is not None:
-            cand_labels = [_without_labels(lab, u) for lab, u in zip(labels, used, strict=True)]
-            cand_labels = [cand_labels[i] for i in active]
-        per_object: int | list[int] = cfg.per_object_per_round
-        if cap is not None:  # no object is picked beyond its cap
-            per_object = [min(cfg.per_object_per_round, cap - int(taken[i])) for i in active]
-        picks = strategy.select([scored[i] for i in active], k, per_object, rng, cand_labels)
-        if not picks:
-            stopped = "exhausted"
-            break
-        rnd += 1
+        if self.labels is not None:
+            left = [_without_labels(lab, u) for lab, u in zip(self.labels, self.used,
+                                                              strict=True)]
+            cand_labels = [left[i] for i in self.active]
+        per_object: int | list[int] = self.cfg.per_object_per_round
+        if self.cap is not None:  # no object is picked beyond its cap
+            per_object = [min(self.cfg.per_object_per_round, self.cap - int(self.taken[i]))
+                          for i in self.active]
+        return self.strategy.select([scored[i] for i in self.active], k, per_object, self.rng,
+                                    cand_labels)
+
+    def execute(self, picks: list[tuple[int, int]], cands: list[Candidates],
+                scored: list[Scored], obj_mean: list[float],
+                stop: Callable[[], bool]) -> tuple[list[Executed], bool]:
+        """Execute the picks in order (recorded as they go); stops between two when asked."""
+        self.round += 1
         executed: list[Executed] = []
         for a_obj, i in picks:
-            if executed and should_stop is not None and should_stop():
-                stopped = "cancelled"  # between interactions: learn from the executed ones
-                break
-            obj = active[a_obj]
-            taken[obj] += 1
-            action = cands[obj].action(clouds[obj], i, primitive)
-            result = world.execute(targets[obj], action)
-            if pools is not None:
-                used[obj].add(int(cands[obj].source[i]))
-            executed.append(Executed(clouds[obj], cands[obj], i, result))
-            records.append(StepRecord(
-                step=spent + len(records) + 1, round=rnd, group=groups[obj],
-                target=_name(targets[obj]), point=action.point.tolist(), up=action.up.tolist(),
+            if executed and stop():
+                return executed, True  # between interactions: learn from the executed ones
+            obj = self.active[a_obj]
+            self.taken[obj] += 1
+            action = cands[obj].action(self.clouds[obj], i, self.primitive)
+            result = self.world.execute(self.targets[obj], action)
+            if self.pools is not None:
+                self.used[obj].add(int(cands[obj].source[i]))
+            executed.append(Executed(self.clouds[obj], cands[obj], i, result))
+            self.records.append(StepRecord(
+                step=self.spent + len(self.records) + 1, round=self.round,
+                group=self.groups[obj], target=_name(self.targets[obj]),
+                point=action.point.tolist(), up=action.up.tolist(),
                 forward=action.forward.tolist(), affordance=float(scored[obj].affordance[i]),
                 similarity=float(scored[obj].similarity[i]), mean_similarity=obj_mean[obj],
                 valid=bool(result.valid), success=bool(result.success),
                 motion=float(np.max(np.abs(result.motion))) if np.size(result.motion) else 0.0,
                 seconds=0.0))
-        losses = model.update(executed)
+        return executed, False
+
+    def learn(self, executed: list[Executed], t0: float,
+              on_step: Callable[[StepRecord], None] | None) -> None:
+        """Update the model on the round, report its steps, snapshot the budgets passed."""
+        losses = self.model.update(executed)
         seconds = (time.perf_counter() - t0) / max(len(executed), 1)
-        for rec in records[-len(executed):]:
+        for rec in self.records[-len(executed):]:
             rec.losses, rec.seconds = losses, seconds
             log.debug("round %d %s %s: aff %.2f sim %.2f (object mean sim %.3f) -> %s",
-                      rec.round, strategy.name, rec.target, rec.affordance, rec.similarity,
-                      rec.mean_similarity,
+                      rec.round, self.strategy.name, rec.target, rec.affordance,
+                      rec.similarity, rec.mean_similarity,
                       "success" if rec.success else ("fail" if rec.valid else "invalid"))
             if on_step:
                 on_step(rec)
+        done = self.spent + len(self.records)
         log.info("round %d %s: %d interactions (%d successful), %d of %d spent, %d objects "
-                 "active, mean similarity %.3f", rnd, strategy.name, len(executed),
-                 sum(e.result.success for e in executed), spent + len(records), spent + total,
-                 len(active),
-                 means[-1])
-        for b in cfg.snapshot_budgets:
-            if b not in snapshots and spent + len(records) >= b * n:
-                snapshots[b] = model.snapshot()
-        if stopped == "cancelled":
-            break
+                 "active, mean similarity %.3f", self.round, self.strategy.name, len(executed),
+                 sum(e.result.success for e in executed), done, self.spent + self.total,
+                 len(self.active), self.means[-1])
+        for b in self.cfg.snapshot_budgets:
+            if b not in self.snapshots and done >= b * len(self.targets):
+                self.snapshots[b] = self.model.snapshot()
+
+    def reobserve(self, executed: list[Executed]) -> None:
+        """A new observation of every object acted on (the world decides if it changed)."""
         touched = {id(e.cloud) for e in executed}
-        for j, c in enumerate(clouds):  # the world decides whether the object changed
+        for j, c in enumerate(self.clouds):
             if id(c) in touched:
-                clouds[j] = world.observe(targets[j])
-    final = model.snapshot() if records else snapshots[0]
-    for b in cfg.snapshot_budgets:
-        snapshots.setdefault(b, final)
-    return ExplorationResult(strategy.name, records, stopped, means, snapshots)
+                self.clouds[j] = self.world.observe(self.targets[j])
+
+    def result(self, stopped: str) -> ExplorationResult:
+        final = self.model.snapshot() if self.records else self.snapshots[0]
+        for b in self.cfg.snapshot_budgets:
+            self.snapshots.setdefault(b, final)
+        return ExplorationResult(self.strategy.name, self.records, stopped, self.means,
+                                 self.snapshots)
 
 
 def _stable(name: str) -> int:
