@@ -650,15 +650,41 @@ def train(cfg: TrainConfig, data_dir: str | Path, out_dir: str | Path, resume: b
     (identical) model so all stop together, and process 0 writes and logs."""
     torch.set_num_threads(cfg.threads)
     distributed = Distributed.from_env()
-    main = distributed.main
-    if not main:  # a torchrun worker: process 0 speaks for the run
+    if not distributed.main:  # a torchrun worker: process 0 speaks for the run
         logging.getLogger("w2e").setLevel(logging.WARNING)
     run_dir = Path(out_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     data = load_training_data(data_dir, cfg.method, cfg.combo, cfg.primitive,
                               cfg.include_invalid)
+    trainer, validator = _open_run(cfg, data, run_dir, resume, val_data, model_cfg,
+                                   distributed)
+    _fit(trainer, validator, run_dir, progress and distributed.main, distributed.main)
+    trainer.save(run_dir, best=validator is None)
+    if distributed.active:  # the rest is one process's work on the saved model
+        dist.destroy_process_group()
+        if not distributed.main:
+            return run_dir / "model.pt"
+    if validator is not None:
+        from w2e_ros.core.viz import training_curves
+
+        training_curves(run_dir / "metrics.jsonl", run_dir / "curves.png",
+                        title=f"{run_dir.name}: validation on held-out instances")
+        log.info("best validation score %.4f at step %d (model.pt)", trainer.best_score,
+                 trainer.best_step)
+    if trainer.sim_cats and cfg.calibrate_steps <= 0 and cfg.sim_weight == 0:
+        log.warning("the similarity head was neither trained (--sim-weight 0) nor calibrated "
+                    "(--calibrate-steps 0): its scores are meaningless; run `w2e calibrate`")
+    if trainer.sim_cats and cfg.calibrate_steps > 0:
+        _calibrate_run(trainer, data, validator, run_dir)
+    return run_dir / "model.pt"
+
+
+def _open_run(cfg: TrainConfig, data: InteractionData, run_dir: Path, resume: bool,
+              val_data: InteractionData | None, model_cfg: ModelConfig | None,
+              distributed: Distributed) -> tuple[Trainer, Validator | None]:
+    """The trainer (resumed from ``run_dir`` if asked) and its validator; writes the run's
+    config.json. A resumed run keeps the network it started with, whatever the flags say."""
     if resume and (run_dir / "state.pt").exists() and (run_dir / "config.json").exists():
-        # a resumed run keeps the network it started with, whatever the flags say now
         model_cfg = ModelConfig.from_dict(json.loads((run_dir / "config.json").read_text())
                                           ["model"])
     elif model_cfg is not None:  # the network's input size is the collection's
@@ -671,9 +697,9 @@ def train(cfg: TrainConfig, data_dir: str | Path, out_dir: str | Path, resume: b
     if resume and (run_dir / "state.pt").exists():
         trainer.resume(run_dir)
         log.info("resumed %s at step %d", run_dir, trainer.step)
-    elif main and (run_dir / "metrics.jsonl").exists():
+    elif distributed.main and (run_dir / "metrics.jsonl").exists():
         (run_dir / "metrics.jsonl").unlink()
-    if main:
+    if distributed.main:
         (run_dir / "config.json").write_text(json.dumps(
             {"train": asdict(trainer.cfg), "model": trainer.model.cfg.to_dict(),
              "interactions": data.num_interactions, "observations": data.num_observations,
@@ -684,10 +710,18 @@ def train(cfg: TrainConfig, data_dir: str | Path, out_dir: str | Path, resume: b
              data.num_observations, 100 * data.positive_rate(), ",".join(trainer.aff_cats),
              ",".join(trainer.sim_cats) or "-", cfg.steps, trainer.steps_per_epoch,
              trainer.device, distributed.world)
+    return trainer, validator
+
+
+def _fit(trainer: Trainer, validator: Validator | None, run_dir: Path, bar_on: bool,
+         main: bool) -> None:
+    """Steps until ``cfg.steps`` or until validation levels off; a metrics line every
+    ``log_every`` steps, a checkpoint every ``ckpt_every``."""
+    cfg = trainer.cfg
     window: list[dict[str, float]] = []
     t0, start = time.perf_counter(), trainer.step
-    bar = tqdm(total=cfg.steps, initial=trainer.step, disable=not (progress and main),
-               unit="step", dynamic_ncols=True)
+    bar = tqdm(total=cfg.steps, initial=trainer.step, disable=not bar_on, unit="step",
+               dynamic_ncols=True)
     stop = validator is not None and trainer.levelled_off(cfg.patience)  # a finished run
     with (run_dir / "metrics.jsonl" if main else Path(os.devnull)).open("a") as mlog:
         while trainer.step < cfg.steps and not stop:
@@ -702,24 +736,11 @@ def train(cfg: TrainConfig, data_dir: str | Path, out_dir: str | Path, resume: b
                 rec.update(step=trainer.step, epoch=trainer.step / trainer.steps_per_epoch,
                            steps_per_s=rate, eta_s=(cfg.steps - trainer.step) / rate)
                 if validate:
-                    val = validator.run(trainer.model)
-                    trainer.val_scores.append(float(val["score"]))
-                    rec.update({f"val_{k}": v for k, v in val.items()})
-                    if val["score"] > trainer.best_score:
-                        trainer.best_score, trainer.best_step = val["score"], trainer.step
-                        trainer.bad_validations = 0
-                        trainer.save(run_dir, best=True)
-                    else:
-                        trainer.bad_validations += 1
-                        stop = trainer.levelled_off(cfg.patience)
-                    rec.update(best_score=trainer.best_score, best_step=trainer.best_step)
-                    log.info("step %d validation score %.4f (best %.4f at %d)%s", trainer.step,
-                             val["score"], trainer.best_score, trainer.best_step,
-                             ": levelled off, stopping" if stop else "")
+                    stop = _validate(trainer, validator, run_dir, rec)
                 mlog.write(json.dumps(rec) + "\n")
                 mlog.flush()
                 bar.set_postfix(loss=f"{rec['loss']:.3f}", aff=f"{rec.get('aff_acc', 0):.2f}")
-                if not progress:
+                if not bar_on and main:
                     log.info("step %d/%d loss %.4f (aff %.4f sim %.4f) %.2f step/s eta %.0fs",
                              trainer.step, cfg.steps, rec["loss"], rec["loss_aff"],
                              rec["loss_sim"], rate, rec["eta_s"])
@@ -727,37 +748,45 @@ def train(cfg: TrainConfig, data_dir: str | Path, out_dir: str | Path, resume: b
             if trainer.step % cfg.ckpt_every == 0 or last or stop:
                 trainer.save(run_dir, best=validator is None)
     bar.close()
-    trainer.save(run_dir, best=validator is None)
-    if distributed.active:  # the rest is one process's work on the saved model
-        dist.destroy_process_group()
-        if not main:
-            return run_dir / "model.pt"
-    if validator is not None:
-        from w2e_ros.core.viz import training_curves
 
-        training_curves(run_dir / "metrics.jsonl", run_dir / "curves.png",
-                        title=f"{run_dir.name}: validation on held-out instances")
-        log.info("best validation score %.4f at step %d (model.pt)", trainer.best_score,
-                 trainer.best_step)
-    if trainer.sim_cats and cfg.calibrate_steps <= 0 and cfg.sim_weight == 0:
-        log.warning("the similarity head was neither trained (--sim-weight 0) nor calibrated "
-                    "(--calibrate-steps 0): its scores are meaningless; run `w2e calibrate`")
-    if trainer.sim_cats and cfg.calibrate_steps > 0:
-        model, meta = load_model(run_dir / "model.pt", trainer.device)
-        before = validator.run(model) if validator is not None else {}
-        stats = calibrate_similarity(model, data, trainer.sim_cats, cfg.calibrate_steps,
-                                     cfg.seed, balanced=cfg.calibrate_balanced)
-        after = validator.run(model) if validator is not None else {}
-        for k in ("csim_simcorr_auroc", "novel_simcorr_auroc", "novel_sim_mean",
-                  "novel_confidence_simcorr_auroc", "novel_simcorr_within_auroc",
-                  "novel_confidence_simcorr_within_auroc"):
-            if k in after:
-                stats[f"val_{k}_before"], stats[f"val_{k}"] = before[k], after[k]
-        save_model(run_dir / "model.pt", model, {**meta, "calibration": stats})
-        (run_dir / "calibration.json").write_text(json.dumps(stats, indent=1))
-        log.info("similarity calibrated: %s", ", ".join(f"{k} {v:.3f}"
-                                                       for k, v in stats.items()))
-    return run_dir / "model.pt"
+
+def _validate(trainer: Trainer, validator: Validator, run_dir: Path, rec: dict) -> bool:
+    """Score the model on the held-out data, keep it if best; whether to stop now."""
+    val = validator.run(trainer.model)
+    trainer.val_scores.append(float(val["score"]))
+    rec.update({f"val_{k}": v for k, v in val.items()})
+    stop = False
+    if val["score"] > trainer.best_score:
+        trainer.best_score, trainer.best_step = val["score"], trainer.step
+        trainer.bad_validations = 0
+        trainer.save(run_dir, best=True)
+    else:
+        trainer.bad_validations += 1
+        stop = trainer.levelled_off(trainer.cfg.patience)
+    rec.update(best_score=trainer.best_score, best_step=trainer.best_step)
+    log.info("step %d validation score %.4f (best %.4f at %d)%s", trainer.step, val["score"],
+             trainer.best_score, trainer.best_step, ": levelled off, stopping" if stop else "")
+    return stop
+
+
+def _calibrate_run(trainer: Trainer, data: InteractionData, validator: Validator | None,
+                   run_dir: Path) -> None:
+    """Re-fit the saved model's similarity head to its affordance head's correctness and
+    record the similarity's validation scores before and after."""
+    cfg = trainer.cfg
+    model, meta = load_model(run_dir / "model.pt", trainer.device)
+    before = validator.run(model) if validator is not None else {}
+    stats = calibrate_similarity(model, data, trainer.sim_cats, cfg.calibrate_steps,
+                                 cfg.seed, balanced=cfg.calibrate_balanced)
+    after = validator.run(model) if validator is not None else {}
+    for k in ("csim_simcorr_auroc", "novel_simcorr_auroc", "novel_sim_mean",
+              "novel_confidence_simcorr_auroc", "novel_simcorr_within_auroc",
+              "novel_confidence_simcorr_within_auroc"):
+        if k in after:
+            stats[f"val_{k}_before"], stats[f"val_{k}"] = before[k], after[k]
+    save_model(run_dir / "model.pt", model, {**meta, "calibration": stats})
+    (run_dir / "calibration.json").write_text(json.dumps(stats, indent=1))
+    log.info("similarity calibrated: %s", ", ".join(f"{k} {v:.3f}" for k, v in stats.items()))
 
 
 def calibrate_similarity(model: W2EModel, data: InteractionData, sim_cats: tuple[str, ...],
