@@ -43,7 +43,7 @@ from w2e_ros.core.data import InteractionData
 from w2e_ros.core.evaluate import evaluation_instances
 from w2e_ros.core.finetune import W2EExplorer, similarity_is_balanced, trains_similarity
 from w2e_ros.core.metrics import auroc, classification_metrics, within_class_auroc
-from w2e_ros.core.model import load_model
+from w2e_ros.core.model import W2EModel, load_model
 from w2e_ros.core.predict import predict_interactions
 from w2e_ros.core.strategies import Scored, get_strategy
 from w2e_ros.core.train import replay_data
@@ -177,22 +177,10 @@ def run_learnability(cfg: LearnabilityConfig) -> dict:
         else:
             rows_sel = select_pool(sel, n_eff, pool_aff, pool.success,
                                    np.random.default_rng(seed), pool_sim)
-            # what the selection holds: successes, the base model's predicted failures, and
-            # the successes among those (the unexpected ones, the teaching signal)
-            ok = pool.success[rows_sel].astype(bool)
-            said_no = pool_aff[rows_sel] <= 0.5
-            picked = {"picked_success": float(ok.mean()),
-                      "picked_predicted_failure": float(said_no.mean()),
-                      "picked_unexpected": float((ok & said_no).mean())}
+            picked = _picked(pool.success[rows_sel], pool_aff[rows_sel])
             m = copy.deepcopy(model)
             m.load_state_dict(initial)
-            ecfg = cfg.explore.finetuning
-            explorer = W2EExplorer(m, ecfg, replay, meta.get("aff_categories", ()),
-                                   meta.get("sim_categories", ()),
-                                   train_similarity=trains_similarity(meta, ecfg),
-                                   seed=seed, balanced_similarity=similarity_is_balanced(meta))
-            explorer.add_data(pool, rows_sel)
-            fit = explorer.fit()
+            fit = _fine_tune(m, meta, cfg, replay, pool, rows_sel, seed)
             aff, sim = predict_interactions(m, test)
         row = {"primitive": prim, "selection": sel, "seed": seed, "n": n_eff,
                **_metrics(aff, sim, test),
@@ -212,6 +200,28 @@ def run_learnability(cfg: LearnabilityConfig) -> dict:
     summary = _summarize(rows, refs, cfg, prim)
     log.info("learnability done in %.0f s: %s", time.perf_counter() - t_start, out)
     return summary
+
+
+def _picked(success: np.ndarray, predicted: np.ndarray) -> dict[str, float]:
+    """What a selection holds: successes, the base model's predicted failures, and the
+    successes among those (the unexpected ones, the teaching signal)."""
+    ok, said_no = success.astype(bool), predicted <= 0.5
+    return {"picked_success": float(ok.mean()),
+            "picked_predicted_failure": float(said_no.mean()),
+            "picked_unexpected": float((ok & said_no).mean())}
+
+
+def _fine_tune(model: W2EModel, meta: dict, cfg: LearnabilityConfig,
+               replay: InteractionData | None, pool: InteractionData, rows: np.ndarray,
+               seed: int) -> dict[str, float]:
+    """Fine-tune ``model`` in place on the pool's ``rows``, as an exploring round does."""
+    fcfg = cfg.explore.finetuning
+    explorer = W2EExplorer(model, fcfg, replay, meta.get("aff_categories", ()),
+                           meta.get("sim_categories", ()),
+                           train_similarity=trains_similarity(meta, fcfg), seed=seed,
+                           balanced_similarity=similarity_is_balanced(meta))
+    explorer.add_data(pool, rows)
+    return explorer.fit()
 
 
 def run_per_category(cfg: LearnabilityConfig) -> dict:
