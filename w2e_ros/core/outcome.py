@@ -166,19 +166,12 @@ def _change(before: np.ndarray, after: np.ndarray, k: int, support_factor: float
     return d, rough, v
 
 
-def judge_clouds(before, after, action: Action, part_mask=None,
-                 frames: Sequence[str] | None = None,
-                 config: CloudJudgeConfig = DEFAULT_JUDGE) -> CloudOutcome:
-    """Judge one (valid) interaction from the object's clouds before and after it.
-
-    ``before`` (N, 3) and ``after`` (M, 3): the object's points in the robot frame (the same
-    frame as ``action``), sampled independently (N and M may differ). ``part_mask`` (N,)
-    bool, optional: which before points lie on movable parts (a part segmentation; the
-    simulator's ground truth). ``frames``: the frame names of the clouds (and of the action),
-    checked to be equal where given. Raises ValueError for input that cannot be judged
-    (module docstring, step 1).
-    """
-    c = config
+def _judgeable(before, after, action: Action, part_mask, frames: Sequence[str] | None,
+               c: CloudJudgeConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray,
+                                              np.ndarray | None, np.ndarray]:
+    """The inputs checked (module docstring, step 1): the clouds, the contact point, the
+    part mask and each before point's distance to the contact; ValueError, naming what is
+    wrong, for input that cannot be judged."""
     before = _check_cloud("before", before)
     after = _check_cloud("after", after)
     named = {f for f in (frames or ()) if f}
@@ -208,6 +201,24 @@ def judge_clouds(before, after, action: Action, part_mask=None,
         raise ValueError(f"the clouds barely overlap (centroids or median nearest neighbours "
                          f"{shift:.3f} m apart, more than {c.max_shift} m): they are not in the "
                          "same frame, or not of the same object")
+    return before, after, point, mask, to_contact
+
+
+def judge_clouds(before, after, action: Action, part_mask=None,
+                 frames: Sequence[str] | None = None,
+                 config: CloudJudgeConfig = DEFAULT_JUDGE) -> CloudOutcome:
+    """Judge one (valid) interaction from the object's clouds before and after it.
+
+    ``before`` (N, 3) and ``after`` (M, 3): the object's points in the robot frame (the same
+    frame as ``action``), sampled independently (N and M may differ). ``part_mask`` (N,)
+    bool, optional: which before points lie on movable parts (a part segmentation; the
+    simulator's ground truth). ``frames``: the frame names of the clouds (and of the action),
+    checked to be equal where given. Raises ValueError for input that cannot be judged
+    (module docstring, step 1).
+    """
+    c = config
+    before, after, point, mask, to_contact = _judgeable(before, after, action, part_mask,
+                                                        frames, c)
 
     d, rough, v = _change(before, after, c.k, c.support_factor)
     change = np.maximum(d - rough, 0.0)  # (N,) step 3
