@@ -1,4 +1,4 @@
-"""Latency and throughput of the model vs the naive way, measured in one run (DESIGN §6).
+"""Latency and throughput of the model vs the naive way, measured in one run.
 
 * Full map: affordance + similarity for all N points x K actions. Ours: one encoder pass and
   the split heads, their (point, action) rows in cache-sized chunks. Unchunked: the same

@@ -1,4 +1,4 @@
-"""The simulated Kinect: a 448 x 448, 35 deg camera 5 units from the objects (DESIGN §3).
+"""The simulated Kinect: a 448 x 448, 35 deg camera 5 units from the objects.
 
 Three back ends produce the same :class:`~sim_bridge.types.Observation`
 (``CameraSettings.backend``; any other name is refused):

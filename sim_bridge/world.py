@@ -1,7 +1,7 @@
 """A world of one or more articulated objects that observes and runs push/pull trials.
 
 Every trial builds a fresh physics-only SAPIEN scene, restores the given joint state,
-drops in the flying gripper and executes the primitive (DESIGN §3), so trials are
+drops in the flying gripper and executes the primitive, so trials are
 independent and bit-identical for the same inputs. The primitive's waypoints and the success
 rule are the core's contract (:mod:`w2e_ros.core.primitives`), which this world implements.
 The camera works from the same object descriptions without any physics.
@@ -156,7 +156,7 @@ class ObjectWorld:
         return [qpos[a:b] for a, b in zip(self._offsets[:-1], self._offsets[1:], strict=True)]
 
     def sample_start_state(self, rng: np.random.Generator) -> np.ndarray:
-        """50 % closed, 50 % between closed and the middle, per joint (DESIGN §3)."""
+        """50 % closed, 50 % between closed and the middle, per joint."""
         return np.concatenate([m.sample_start_state(rng) for m in self.models])
 
     # -- geometry --------------------------------------------------------------------------

@@ -104,3 +104,13 @@ def test_readme_lists_every_w2e_verb():
     listed = set(re.findall(r"`w2e ([a-z-]+)`", section))
     assert listed == set(sub.choices), (
         f"README's verbs {sorted(listed)}; `w2e --help` has {sorted(sub.choices)}")
+
+
+def test_no_code_comment_cites_the_design_notes_outside_the_repository():
+    """Docstrings and comments say the fact or name the module, not a section of notes a
+    user of the repository does not have."""
+    tracked = subprocess.run(["git", "ls-files", "*.py", "*.yaml", "Makefile"], cwd=ROOT,
+                             capture_output=True, text=True, check=True).stdout.split()
+    cited = [p for p in tracked if p != "test/test_docs.py"
+             and any(s in (ROOT / p).read_text() for s in ("DESIGN §", "DESIGN.md", "../shared"))]
+    assert not cited, cited

@@ -1,4 +1,4 @@
-"""Flying gripper and push/pull primitives (DESIGN §3) on generated objects."""
+"""Flying gripper and push/pull primitives on generated objects."""
 
 import numpy as np
 import pytest

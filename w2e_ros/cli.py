@@ -808,7 +808,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 # verbs that train or run the network: glibc's default allocator makes their big, short-lived
-# tensors page-fault constantly; huge pages made batch training 2-2.7x faster (DESIGN §6)
+# tensors page-fault constantly; huge pages made batch training 2-2.7x faster
 _TENSOR_VERBS = {"train", "calibrate", "fewshot", "evaluate", "benchmark", "demo",
                  "learnability"}
 

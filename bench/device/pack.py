@@ -41,7 +41,7 @@ from typing import Any
 REPO = Path(__file__).resolve().parents[2]
 MIB = 1 << 20
 MARKER = "pack.json"
-# what the GPU machine runs (../shared/DEVICE.md): CPython 3.12 on x86-64 manylinux
+# what the GPU machine runs (measured there, bench/REPRODUCE.md): CPython 3.12 on x86-64 manylinux
 DEVICE_PYTHON = "312"
 DEVICE_PLATFORMS = ("manylinux_2_28_x86_64", "manylinux_2_27_x86_64", "manylinux_2_17_x86_64",
                     "manylinux2014_x86_64", "manylinux1_x86_64")

@@ -146,7 +146,7 @@ class ObjectModel:
 
     # -- state ---------------------------------------------------------------------------
     def sample_start_state(self, rng: np.random.Generator) -> np.ndarray:
-        """DESIGN §3: each joint 50 % closed (lower limit), 50 % between closed and middle."""
+        """Each joint 50 % closed (lower limit), 50 % between closed and middle."""
         lim = self.joint_limits
         closed = rng.random(len(lim)) < 0.5
         frac = rng.random(len(lim)) * 0.5

@@ -1,4 +1,4 @@
-"""Sampling of action frames and their 6-D encoding (DESIGN §3).
+"""Sampling of action frames and their 6-D encoding.
 
 An action at a contact point is the gripper frame [forward, left, up]
 (:func:`w2e_ros.core.primitives.gripper_frame`): ``up`` is the approach direction (into the

@@ -23,7 +23,7 @@ from w2e_ros.core.settings import from_dict, setting
 
 @dataclass(frozen=True)
 class ModelConfig:
-    """PointNet++ SSG encoder and the two heads (DESIGN §1)."""
+    """PointNet++ SSG encoder and the two heads."""
 
     num_points: int = 2048
     sa_npoint: tuple[int, ...] = (512, 128, 32, 8)
@@ -72,10 +72,10 @@ class TrainConfig:
     combo: str = "cfw"
     primitive: str = "push"
     steps: int = 6000  # upper bound: validation stops the run earlier when it levels off
-    clouds_per_batch: int = 4  # encoder passes per step (DESIGN §6: the expensive part)
+    clouds_per_batch: int = 4  # encoder passes per step (the expensive part)
     interactions_per_cloud: int = 32  # head queries per cloud, half positive, half negative
     lr: float = 1e-3
-    weight_decay: float = 1e-5  # the reference's Adam setting (DESIGN §8)
+    weight_decay: float = 1e-5  # the reference's Adam setting
     # weight of the joint similarity loss (the reference: 1, with aff_share 0.5). 0 by
     # default: measured on pull over two training seeds, the joint loss's batch share costs
     # the affordance head 4-6 novel AUROC points, and its similarity ranked correctness
@@ -168,7 +168,7 @@ SETTINGS_RENAMED = {"sim_bar": "similarity_bar"}
 
 @dataclass
 class ExploreConfig:
-    """Few-shot exploration (paper §3.3 and supplementary; the reference code, DESIGN §8).
+    """Few-shot exploration (paper §3.3 and supplementary; the reference code).
     ``asdict`` of it is what results store; :meth:`from_dict` reads that back (also the flat
     form, fine-tuning settings beside the others, of results written before the split)."""
 

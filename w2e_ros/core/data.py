@@ -2,7 +2,7 @@
 
 One observed cloud (instance, start state, camera) carries many interactions and is stored
 once: the encoder runs once per cloud and the heads read the features at each interaction's
-contact point (DESIGN §6).
+contact point.
 
 Shard format (``<dir>/shard-XXXXX.npz``, written atomically, ``np.load`` without pickle):
 
@@ -22,7 +22,7 @@ point_index     (K,) i4         contact point = points[obs_index, point_index]
 up, forward     (K, 3) f4       gripper frame: approach direction and orientation
 primitive       (K,) str        push | pull (or a -left / -up variant)
 motion          (K,) f4         motion of the target part's joint (m or rad)
-valid, success  (K,) bool       trial validity and the success label (DESIGN §3)
+valid, success  (K,) bool       trial validity and the success label
 trial_seed      (K,) i8         seed the simulator ran the trial with
 meta            () str          JSON: format version, collection settings
 ==============  ==============  ============================================================

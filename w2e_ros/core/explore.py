@@ -3,7 +3,7 @@ benchmark and the ROS planner node.
 
 A budget of b means b interactions per explore object (b x objects in all), spent in rounds
 and chosen GLOBALLY over the objects by the strategy, so an unfamiliar category may take more
-than a familiar one (DESIGN §8: the paper's 550 interactions over 11 categories at budget 5).
+than a familiar one (the paper's 550 interactions over 11 categories at budget 5).
 Each round: observe the objects, draw candidate actions from the proposal distribution (the
 one the training data came from), score them, drop the objects whose mean similarity passes
 the bar (similarity strategy), execute the round's best actions (at most a few per object),

@@ -1,6 +1,6 @@
 """Few-shot fine-tuning: the model as the exploration loop sees it (``W2EExplorer``).
 
-What the first benchmark taught (DESIGN §9): eight small steps per round could not even fit
+What the first benchmark taught (docs/results.md): eight small steps per round could not even fit
 the explored interactions. Here every update trains on ALL interactions explored so far,
 each with a flipped-approach copy labelled failure (the reference's extra negatives),
 class-balanced, plus a replay of ~1 % DISTINCT training interactions with their training

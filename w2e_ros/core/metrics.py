@@ -1,4 +1,4 @@
-"""Evaluation metrics (DESIGN §3): affordance F-score and sample success rate.
+"""Evaluation metrics: affordance F-score and sample success rate.
 
 The F-score is computed once from the pooled counts of true / false positives and false
 negatives over all held-out interactions (the reference code averaged per-batch values,

@@ -1,6 +1,6 @@
 """The Where2Explore network: one shared PointNet++ encoder, an affordance and a similarity head.
 
-Built so that many queries cost little (DESIGN §6): ``encode`` runs once per cloud, and each
+Built so that many queries cost little: ``encode`` runs once per cloud, and each
 head's first layer is split into a per-point part (point feature) and a per-action part
 (6-D rotation) that are added, which equals one linear layer on their concatenation. A map of
 all N points x K actions then costs one (N, hidden) and one (K, hidden) product plus an add,

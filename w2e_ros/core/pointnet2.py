@@ -1,7 +1,7 @@
 """PointNet++ SSG segmentation encoder: per-point features for a partial point cloud.
 
 Layers as small modules over the plain functions of ``pointnet2_geometry``; sizes come from
-``ModelConfig``. ReLUs are not in-place (in-place slowed backward by ~30 %, DESIGN §6).
+``ModelConfig``. ReLUs are not in-place (in-place slowed backward by ~30 %).
 """
 
 from __future__ import annotations

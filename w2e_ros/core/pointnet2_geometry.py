@@ -1,6 +1,6 @@
 """PointNet++ geometry as plain functions: sampling, grouping, interpolation.
 
-Chosen for a 2-core CPU (DESIGN §6): furthest point sampling runs as bucket FPS in the
+Chosen for a 2-core CPU: furthest point sampling runs as bucket FPS in the
 ``fpsample`` package on the CPU (ms instead of a 100 ms torch loop; the torch loop of
 :mod:`w2e_ros.core.fps` on CUDA or without ``fpsample``), squared distances are one matrix
 product, and the ball query keeps the ``nsample`` NEAREST points inside the radius (a top-k

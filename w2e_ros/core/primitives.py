@@ -1,4 +1,4 @@
-"""The primitives contract between the learning core and a robot (DESIGN §3).
+"""The primitives contract between the learning core and a robot.
 
 What the core asks a robot to do (an :class:`Action`: contact point, gripper frame and one of
 the :data:`PRIMITIVES`), how the wrist moves for it (:func:`schedule`, from the start pose
@@ -39,7 +39,7 @@ PALM_HALF = (0.03, 0.1, 0.023)  # palm box half size (forward, left, up), behind
 
 @dataclass(frozen=True)
 class Action:
-    """One interaction: contact point, gripper frame and primitive (DESIGN §3).
+    """One interaction: contact point, gripper frame and primitive.
 
     ``up`` is the approach direction (into the surface), ``forward`` the gripper
     orientation about it; both unit vectors, orthogonal, in the world frame.
@@ -111,7 +111,7 @@ def pull_direction(action: Action) -> np.ndarray:
 
 def judge_motion(motion: np.ndarray, target_joint: int, joint_range: float, pulling: bool,
                  displacement: np.ndarray, pull_direction: np.ndarray) -> tuple[bool, str]:
-    """DESIGN §3's success rule for a valid trial, shared by the simulator and the executor
+    """The success rule for a valid trial, shared by the simulator and the executor
     (which judges from robot-side measurements): the touched part is movable and moved
     > 0.01 (m or rad) or more than half its range, and a pull moved the contact point along
     the hand's pulling direction. Returns (success, reason when not)."""

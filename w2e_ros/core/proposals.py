@@ -1,7 +1,7 @@
 """Where the robot proposes to act: the one distribution of candidate actions.
 
 The collector draws its training interactions from it and the exploration loop its
-candidates, so that the model is asked about the kind of actions it learned from (DESIGN §9:
+candidates, so that the model is asked about the kind of actions it learned from (measured:
 uniform candidates hit movable parts 27 % of the time and explored almost nothing but
 failures). A share of the contacts lies on movable parts when a mask is known (the simulator's
 ground truth, as the reference uses in simulation); a share of those (or of the whole cloud

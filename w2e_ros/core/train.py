@@ -8,7 +8,7 @@ code does (L1 as the paper says is a setting). Interactions on the other ``C_sim
 never reach the affordance head or send it gradient through the encoder: their affordance
 prediction is made without gradient and is only counted.
 
-Batches are a few clouds x many interactions (grouped by observation, DESIGN §6): a fixed
+Batches are a few clouds x many interactions (grouped by observation): a fixed
 share of the clouds from ``C_aff`` (so the affordance head is not starved by the other
 ``C_sim`` categories), the rest equally per category; per cloud half positives, a quarter
 negatives and a quarter flipped-approach copies (``up`` reversed, labelled failure: the

@@ -1,8 +1,8 @@
 """The gripper executor: one Interaction in, the robot's waypoint trajectory out, an outcome back.
 
 Action server ``execute_interaction`` (w2e_msgs/ExecuteInteraction). For each goal it turns
-the interaction into its primitive's wrist waypoints (DESIGN §3: start 0.15 m behind the
-point along ``up``, ...; :mod:`w2e_ros.ros.waypoints`), drives the robot side's
+the interaction into its primitive's wrist waypoints (``w2e_ros.core.primitives``: start
+0.15 m behind the point along ``up``, ...; :mod:`w2e_ros.ros.waypoints`), drives the robot side's
 ``follow_waypoints`` action (the sim bridge, or a Panda adapter), and judges the outcome from
 what the robot measured, so simulated and real trials are judged alike. Feedback names the
 phase: planning, then each waypoint's phase (approach, grasp, pull / push ...), then done.

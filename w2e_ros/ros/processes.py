@@ -1,7 +1,7 @@
 """Start, stop and clean up ROS node processes without ``ros2 launch`` (plain Python, no rclpy).
 
-Used by ``w2e_ros.bringup`` and the multi-process tests. The facts it is built around
-(DESIGN §7): nodes must run under the venv's Python (the wheels set LD_LIBRARY_PATH at
+Used by ``w2e_ros.bringup`` and the multi-process tests. The facts it is built around:
+nodes must run under the venv's Python (the wheels set LD_LIBRARY_PATH at
 start-up); a node sent SIGTERM in its first second can miss it, so stopping is TERM, wait,
 TERM again, then KILL; killed nodes leave Fast DDS shared-memory files in /dev/shm.
 """

@@ -1,7 +1,8 @@
 """Primitive <-> gripper waypoints, and the outcome of a trial from what the robot measured.
 
 Plain Python (no rclpy). The executor turns an :class:`Action` into the wrist waypoints of
-its primitive (DESIGN §3: start 0.15 m behind the point along ``up``, ...); the simulator
+its primitive (``w2e_ros.core.primitives``: start 0.15 m behind the point along ``up``,
+...); the simulator
 bridge, which can only run whole primitives, maps such a trajectory back to the action it
 encodes and refuses anything else. Both directions use the core's schedule
 (:func:`w2e_ros.core.primitives.schedule`), which the simulator runs too, so there is one
@@ -127,7 +128,8 @@ def outcome_from_measurement(
     valid: bool,
     reason: str = "",
 ) -> TrialResult:
-    """Judge a trial from what the robot side measured, with DESIGN §3's rule.
+    """Judge a trial from what the robot side measured, with the success rule of
+    ``w2e_ros.core.primitives``.
 
     Success: valid, the touched part is movable, it moved > 0.01 (m or rad) or more than half
     its range, and for pulls the contact point moved along the hand's pulling direction
