@@ -125,7 +125,9 @@ def _pinned(node: PlannerNode, timeout: float = 10.0) -> str:
     return node.pinned["predict_maps"]
 
 
-def test_a_server_restarted_mid_request_fails_the_call_at_once(planner):
+def _kill_mid_request(planner, respawn: bool) -> tuple[dict, float]:
+    """A call in flight when its server is SIGKILLed (and, with ``respawn``, started again
+    under the same name): the call's outcome and how long after the kill it ended."""
     node, env, servers = planner
     servers.append(first := Server(env))
     _pinned(node)
@@ -133,10 +135,16 @@ def test_a_server_restarted_mid_request_fails_the_call_at_once(planner):
     first.wait_request()
     first.kill()
     t_kill = time.monotonic()
-    servers.append(Server(env))  # the respawn: same name, same service, a new process
+    if respawn:
+        servers.append(Server(env))  # same name, same service, a new process
     thread.join(DETECT_S + 5)
     assert "error" in out, out
-    took = out["at"] - t_kill
+    return out, out["at"] - t_kill
+
+
+def test_a_server_restarted_mid_request_fails_the_call_at_once(planner):
+    node = planner[0]
+    out, took = _kill_mid_request(planner, respawn=True)
     print(f"\n[peers] restarted server seen {took:.1f} s after the SIGKILL: {out['error']}")
     assert took < DETECT_S
     # "restarted" when the new process announced itself first, else "gone" (it took longer
@@ -151,16 +159,7 @@ def test_a_server_restarted_mid_request_fails_the_call_at_once(planner):
 
 
 def test_a_server_killed_mid_request_fails_the_call_within_its_lease(planner):
-    node, env, servers = planner
-    servers.append(first := Server(env))
-    _pinned(node)
-    thread, out = _call_in_thread(node)
-    first.wait_request()
-    first.kill()
-    t_kill = time.monotonic()
-    thread.join(DETECT_S + 5)
-    assert "error" in out, out
-    took = out["at"] - t_kill
+    out, took = _kill_mid_request(planner, respawn=False)
     print(f"\n[peers] dead server seen {took:.1f} s after the SIGKILL: {out['error']}")
     assert took < LEASE_S + 2.0 < DETECT_S
     assert "inference_node is gone" in out["error"]
