@@ -24,6 +24,7 @@ pytest.importorskip("w2e_msgs.srv", reason="w2e_msgs not built: make interfaces"
 
 import rclpy  # noqa: E402
 from rclpy.executors import MultiThreadedExecutor  # noqa: E402
+from std_msgs.msg import String  # noqa: E402
 from w2e_msgs.srv import PredictMaps  # noqa: E402
 
 from w2e_ros.nodes.planner_node import PlannerNode, StackError  # noqa: E402
@@ -175,3 +176,23 @@ def test_a_server_that_does_not_announce_is_not_judged(planner):
     first.wait_request()
     time.sleep(LEASE_S + 1.5)
     assert thread.is_alive() and not out, out  # still waiting for its answer
+
+
+def test_an_announcement_seen_late_is_not_a_restart_of_the_call(planner):
+    """The CI failure of 2026-12-05: a server restarted *before* the call, whose announcement
+    reached the planner only after the call had pinned (a loaded machine's discovery), failed
+    the next explore as "restarted". Only a process started after the pin ends a call, and
+    announcements arriving out of order keep the newest process."""
+    node = planner[0]
+    watch = node.peers["predict_maps"]
+    old, new = "host:1:1000", "host:2:2000"
+    watch._on_instance(String(data=old))
+    node.pin_peers()  # the call starts (wall clock now, long after both processes started)
+    assert node.pinned["predict_maps"] == old
+    watch._on_instance(String(data=new))  # the replacement's announcement, seen late
+    assert node.peer_check("predict_maps")() is None
+    watch._on_instance(String(data=old))  # a stale copy of the old one: ignored
+    assert watch.current() == new
+    later = f"host:3:{time.time_ns() + 10**9}"  # a process started during the call
+    watch._on_instance(String(data=later))
+    assert "inference_node restarted" in node.peer_check("predict_maps")()

@@ -210,10 +210,10 @@ class GripperExecutorNode(Node):
         s = self.settings
         if not self._robot.wait_for_server(timeout_sec=s.server_timeout_s):
             return f"robot action {s.robot_action!r} is not available"
-        robot = self._robot_peer.current()
+        robot, since = self._robot_peer.current(), time.time_ns()
 
         def check() -> str | None:
-            return self._robot_peer.check(robot)
+            return self._robot_peer.check(robot, since)
 
         try:
             sent = wait_future(self._robot.send_goal_async(goal, feedback_callback=on_feedback),

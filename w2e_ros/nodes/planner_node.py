@@ -188,6 +188,7 @@ class PlannerNode(Node):
         self.peers = {name: PeerWatch(self, name, server, callback_group=g)
                       for name, server in PEERS.items()}
         self.pinned: dict[str, str | None] = {}
+        self.pinned_at = 0
         self.progress_pub = self.create_publisher(ExplorationProgress, "exploration_progress",
                                                   RELIABLE_QOS)
         self.create_service(Explore, "explore", self.on_explore, callback_group=self.user_group)
@@ -206,13 +207,14 @@ class PlannerNode(Node):
         them (the inference node holds the explored set, the bridge the scene), so a restart
         of any during the call fails it (the next explore of the session resumes)."""
         self.pinned = {name: watch.current() for name, watch in self.peers.items()}
+        self.pinned_at = time.time_ns()
 
     def peer_check(self, name: str) -> Callable[[], str | None]:
         """Why ``name``'s pinned server cannot answer any more (died, restarted), or None."""
         def check() -> str | None:
             if self.pinned.get(name) is None:  # not announced when pinned: the first one seen
                 self.pinned[name] = self.peers[name].current()
-            return self.peers[name].check(self.pinned[name])
+            return self.peers[name].check(self.pinned[name], self.pinned_at)
         return check
 
     def call(self, client, request, what: str, timeout: float | None = None):

@@ -74,6 +74,14 @@ def announce(node: Node, names: Sequence[str]) -> list[Publisher]:
     return pubs
 
 
+def started_ns(instance: str) -> int:
+    """When the process of ``instance`` (from :func:`instance_id`) announced itself."""
+    try:
+        return int(instance.rsplit(":", 1)[1])
+    except (IndexError, ValueError):
+        return 0
+
+
 class PeerWatch:
     """The instance serving ``name`` as the announcements show it, and whether it lives."""
 
@@ -89,8 +97,9 @@ class PeerWatch:
             callback_group=callback_group)
 
     def _on_instance(self, msg: String) -> None:
-        with self._lock:
-            self._instance = msg.data
+        with self._lock:  # the newest process wins, whatever order the announcements come in
+            if self._instance is None or started_ns(msg.data) >= started_ns(self._instance):
+                self._instance = msg.data
 
     def _on_liveliness(self, info: QoSLivelinessChangedInfo) -> None:
         with self._lock:
@@ -101,13 +110,16 @@ class PeerWatch:
         with self._lock:
             return None if self._lost else self._instance
 
-    def check(self, pinned: str | None) -> str | None:
-        """Why the instance ``pinned`` (from :meth:`current`) cannot answer any more, or None:
-        it was replaced by another process (restarted), or it lost its liveliness (died)."""
+    def check(self, pinned: str | None, since_ns: int = 0) -> str | None:
+        """Why the instance ``pinned`` (from :meth:`current` at ``since_ns``, wall clock) cannot
+        answer any more, or None: a process started after ``since_ns`` replaced it (restarted),
+        or it lost its liveliness (died). A replacement that started before the pin is not a
+        restart of this call: its announcement came late (a loaded machine's discovery), and
+        it has answered every request of the call."""
         with self._lock:
             if pinned is None or self._instance is None:
                 return None
-            if self._instance != pinned:
+            if self._instance != pinned and started_ns(self._instance) > since_ns:
                 return (f"{self.server} restarted (a new process serves {self.name}; what "
                         "the old one held in memory and any request it was answering are "
                         "lost)")
