@@ -53,7 +53,8 @@ from w2e_ros.core.metrics import bootstrap_ci
 from w2e_ros.core.model import load_model
 from w2e_ros.core.policy import ManipulatePolicy, best_first, score_actions
 from w2e_ros.core.primitives import Action
-from w2e_ros.core.sim_world import SimWorld, Target, stable_seed
+from w2e_ros.core.targets import Target, stable_seed
+from w2e_ros.experiments.sim_world import SimWorld
 from w2e_ros.paths import default_checkpoint
 
 

@@ -28,7 +28,8 @@ from w2e_ros.core.categories import load_categories
 from w2e_ros.core.evaluate import evaluation_targets
 from w2e_ros.core.feasibility import Arm, first_feasible
 from w2e_ros.core.model import load_model
-from w2e_ros.core.sim_world import SimWorld, stable_seed
+from w2e_ros.core.targets import stable_seed
+from w2e_ros.experiments.sim_world import SimWorld
 from w2e_ros.paths import default_checkpoint
 
 BASE = (0.95, 0.0, -0.3, 0.0, 0.0, 1.0, 0.0)  # x y z qx qy qz qw: facing -x, at the object

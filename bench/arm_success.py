@@ -32,7 +32,8 @@ from w2e_ros.core import kinematics as kin
 from w2e_ros.core.evaluate import evaluation_targets
 from w2e_ros.core.model import load_model
 from w2e_ros.core.primitives import Action
-from w2e_ros.core.sim_world import SimWorld, stable_seed
+from w2e_ros.core.targets import stable_seed
+from w2e_ros.experiments.sim_world import SimWorld
 from w2e_ros.paths import default_checkpoint
 
 

@@ -35,7 +35,8 @@ from bench_model import time_pair  # this folder: run as a script
 from w2e_ros.core.categories import load_categories
 from w2e_ros.core.explore import cloud_proposer, sample_candidates
 from w2e_ros.core.feasibility import approach_hits
-from w2e_ros.core.sim_world import SimWorld, Target
+from w2e_ros.core.targets import Target
+from w2e_ros.experiments.sim_world import SimWorld
 
 ROOT = Path(__file__).resolve().parents[1]
 BEFORE = "79ab48c93367649c5c9d89b7c4a8bbfc1fe11ad5"  # the last commit with the numpy check

@@ -31,7 +31,7 @@ from w2e_ros.core.explore import explore_targets, sample_candidates
 from w2e_ros.core.finetune import W2EExplorer
 from w2e_ros.core.metrics import bootstrap_ci
 from w2e_ros.core.model import load_model
-from w2e_ros.core.sim_world import SimWorld
+from w2e_ros.experiments.sim_world import SimWorld
 
 
 def rule_keys(aff: np.ndarray, sim: np.ndarray, rng: np.random.Generator) -> dict[str, np.ndarray]:

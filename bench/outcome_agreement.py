@@ -29,8 +29,8 @@ from pathlib import Path
 import numpy as np
 
 from w2e_ros.core.categories import load_categories
-from w2e_ros.core.collect import CollectConfig, observation_trials, plan_chunks
-from w2e_ros.core.sim_world import SimWorld
+from w2e_ros.experiments.collect import CollectConfig, observation_trials, plan_chunks
+from w2e_ros.experiments.sim_world import SimWorld
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -1,12 +1,16 @@
 """Which way the dependencies point: the core owns the primitives contract, the simulator
-implements it, and a robot workstation without the simulator imports the core and the nodes."""
+implements it, and a robot workstation without the simulator imports the core and the nodes.
+
+The core (``w2e_ros.core``) is a library: no module of it imports the simulator
+(``sim_bridge``, SAPIEN) or the simulator experiments (``w2e_ros.experiments``), not even
+inside a function, where a test that only imports the modules cannot see it. The
+experiments stand beside it and may import both."""
 
 from __future__ import annotations
 
 import ast
 import importlib.util
 import json
-import pkgutil
 import subprocess
 import sys
 import textwrap
@@ -16,6 +20,7 @@ import w2e_ros
 
 ROOT = Path(w2e_ros.__file__).resolve().parent.parent
 SIMULATOR = ("sim_bridge", "sapien")
+EXPERIMENTS = "w2e_ros.experiments"
 
 # What a workstation next to a real arm runs: the learning core, the ROS helpers and the nodes.
 WORKSTATION_CORE = ["w2e_ros.core." + m for m in (
@@ -90,13 +95,50 @@ def _module_level_imports(tree: ast.Module) -> set[str]:
     return out
 
 
-def _import_graph(package: str) -> dict[str, set[str]]:
+def _modules(package: str) -> dict[str, Path]:
+    """Every module of ``package`` and of its subpackages -> its file."""
     folder = ROOT / package.replace(".", "/")
-    names = {f"{package}.{m.name}" for m in pkgutil.iter_modules([str(folder)])}
+    out = {}
+    for path in sorted(folder.rglob("*.py")):
+        parts = path.relative_to(ROOT).with_suffix("").parts
+        out[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+    return out
+
+
+def _all_imports(tree: ast.Module, module: str, is_package: bool = False) -> set[str]:
+    """Absolute module names imported anywhere in the module: at load time, inside functions
+    and under ``if TYPE_CHECKING`` alike (relative imports resolved against ``module``), and
+    the constant names given to ``importlib.import_module`` / ``__import__``."""
+    package = module if is_package else module.rpartition(".")[0]
+    out: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = package.split(".")[:len(package.split(".")) - (node.level - 1)]
+                base = ".".join(anchor + ([base] if base else []))
+            out.add(base)
+            out |= {f"{base}.{a.name}" for a in node.names}
+        elif (isinstance(node, ast.Call) and node.args
+              and isinstance(node.args[0], ast.Constant) and isinstance(node.args[0].value, str)
+              and ast.unparse(node.func) in ("importlib.import_module", "import_module",
+                                             "__import__")):
+            out.add(node.args[0].value)
+    return out
+
+
+def _import_graph(package: str) -> dict[str, set[str]]:
+    """Module -> the modules of ``package`` it imports when loaded (a package counts as
+    imported with any of its modules' names: ``from pkg import name`` loads ``pkg``)."""
+    modules = _modules(package)
     graph = {}
-    for name in sorted(names):
-        tree = ast.parse((ROOT / (name.replace(".", "/") + ".py")).read_text())
-        graph[name] = (_module_level_imports(tree) & names) - {name}
+    for name, path in modules.items():
+        imported = _module_level_imports(ast.parse(path.read_text()))
+        graph[name] = {m for m in modules
+                       if m in imported or any(i.startswith(m + ".") for i in imported)}
+        graph[name] -= {name} | {p for p in modules if name.startswith(p + ".")}
     return graph
 
 
@@ -125,6 +167,60 @@ def test_core_modules_import_each_other_without_cycles():
     graph = _import_graph("w2e_ros.core")
     assert "w2e_ros.core.explore" in graph and graph["w2e_ros.core.explore"]
     assert _cycles(graph) == []
+
+
+def test_experiment_modules_import_each_other_without_cycles():
+    graph = _import_graph(EXPERIMENTS)
+    assert graph[f"{EXPERIMENTS}.collect"] >= {f"{EXPERIMENTS}.sim_world"}
+    assert _cycles(graph) == []
+
+
+def _forbidden_in_core(imported: set[str]) -> set[str]:
+    return {m for m in imported
+            if m.split(".")[0] in SIMULATOR or m == EXPERIMENTS or m.startswith(EXPERIMENTS + ".")}
+
+
+def test_the_core_never_imports_the_simulator_or_the_experiments_not_even_in_a_function():
+    offenders = {}
+    for name, path in _modules("w2e_ros.core").items():
+        bad = _forbidden_in_core(_all_imports(ast.parse(path.read_text()), name,
+                                              path.name == "__init__.py"))
+        if bad:
+            offenders[str(path.relative_to(ROOT))] = sorted(bad)
+    assert offenders == {}
+
+
+def test_the_import_finder_sees_imports_inside_functions():
+    source = textwrap.dedent("""
+        import numpy as np
+
+        def world():
+            from sim_bridge.world import ObjectWorld
+            return ObjectWorld
+
+        class Probe:
+            def run(self):
+                import importlib
+                from ..experiments import benchmark
+                return importlib.import_module("sapien.core"), benchmark
+    """)
+    imported = _all_imports(ast.parse(source), "w2e_ros.core.probe")
+    assert _forbidden_in_core(imported) == {
+        "sim_bridge.world", "sim_bridge.world.ObjectWorld", "w2e_ros.experiments",
+        "w2e_ros.experiments.benchmark", "sapien.core"}
+    assert "sim_bridge.world" not in _module_level_imports(ast.parse(source))
+
+
+def test_the_experiments_drive_the_simulator_with_the_core():
+    """Beside the core, not under it: the experiments may import the core and the simulator
+    (the simulated world does, on use), and nothing of the ROS layer."""
+    imported = set()
+    for name, path in _modules(EXPERIMENTS).items():
+        imported |= _all_imports(ast.parse(path.read_text()), name, path.name == "__init__.py")
+    assert any(m.startswith("w2e_ros.core.") for m in imported)
+    assert any(m.startswith("sim_bridge.") for m in imported)
+    assert not {m for m in imported if m.split(".")[0] == "rclpy"
+                or m.startswith(("w2e_ros.nodes", "w2e_ros.ros"))}
 
 
 def test_cycle_finder_reports_a_cycle():

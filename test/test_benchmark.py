@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from w2e_ros import cli
-from w2e_ros.core.benchmark import BenchmarkConfig, summarize
+from w2e_ros.experiments.benchmark import BenchmarkConfig, summarize
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -11,14 +11,14 @@ import numpy as np
 import pytest
 from synthetic import synthetic_data
 
-from w2e_ros.core.ceiling import (
+from w2e_ros.core.primitives import Action
+from w2e_ros.experiments.ceiling import (
     PERTURBATIONS,
     _pick_trials,
     fit_subset,
     perturb,
     summarize_labels,
 )
-from w2e_ros.core.primitives import Action
 
 
 @pytest.mark.parametrize("shift,turn", [(0.003, 0.0), (0.01, 0.0), (0.0, 5.0), (0.0, 15.0)])
@@ -88,7 +88,7 @@ def test_fit_subset_keeps_whole_observations():
 @pytest.mark.slow
 def test_w2e_ceiling_labels_replays_simulated_trials_and_the_replay_repeats(tmp_path):
     """The command as typed on a real collection: every replayed label equals the stored one."""
-    from w2e_ros.core.collect import CollectConfig, collect
+    from w2e_ros.experiments.collect import CollectConfig, collect
 
     collect(CollectConfig(out=str(tmp_path / "data"), categories=["cabinet", "bucket"],
                           split="test", observations=2, interactions=12, workers=1))
@@ -108,7 +108,7 @@ def test_w2e_ceiling_labels_replays_simulated_trials_and_the_replay_repeats(tmp_
 @pytest.mark.slow
 def test_w2e_ceiling_fit_fits_a_small_training_set(tmp_path):
     """A fresh network must rank the interactions it trained on far above chance."""
-    from w2e_ros.core.collect import CollectConfig, collect
+    from w2e_ros.experiments.collect import CollectConfig, collect
 
     collect(CollectConfig(out=str(tmp_path / "data"), categories=["cabinet", "faucet", "window"],
                           observations=3, interactions=24, primitives=("push",), workers=1))
@@ -128,7 +128,7 @@ def test_w2e_ceiling_fit_fits_a_small_training_set(tmp_path):
 def test_a_fresh_head_on_frozen_random_features_fits_what_they_separate(tmp_path):
     """The representation half of the fit test: full-batch head training on cached features
     reaches a near-perfect train AUROC when the rows are separable (synthetic handles)."""
-    from w2e_ros.core.ceiling import FitTestConfig, fit_test
+    from w2e_ros.experiments.ceiling import FitTestConfig, fit_test
 
     synthetic_data(obs_per_cat=4, per_obs=24).save_shard(tmp_path / "data" / "shard-00000.npz")
     res = fit_test(FitTestConfig(data=str(tmp_path / "data"), out=str(tmp_path / "fit"),
@@ -144,7 +144,7 @@ def test_a_fresh_head_on_frozen_random_features_fits_what_they_separate(tmp_path
 def test_oracle_summary_scores_the_neighbourhood_rate_per_category():
     """The local oracle's AUROC: a neighbourhood rate that orders the labels scores 1, one
     that reverses them 0, per category and in the mean."""
-    from w2e_ros.core.ceiling import _radius_key, summarize_oracle
+    from w2e_ros.experiments.ceiling import _radius_key, summarize_oracle
 
     k1, k2 = _radius_key(0.003), _radius_key(0.01)
     trials = []
@@ -165,7 +165,7 @@ def test_oracle_summary_scores_the_neighbourhood_rate_per_category():
 def test_w2e_ceiling_oracle_scores_simulated_trials(tmp_path):
     """The command as typed on a real collection: tiny radii keep the stored outcome, so
     the oracle ranks the stored labels far above chance."""
-    from w2e_ros.core.collect import CollectConfig, collect
+    from w2e_ros.experiments.collect import CollectConfig, collect
 
     collect(CollectConfig(out=str(tmp_path / "data"), categories=["cabinet"], split="test",
                           observations=3, interactions=24, primitives=("push",), workers=1))

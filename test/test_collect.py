@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from w2e_ros.core.categories import load_categories
-from w2e_ros.core.collect import CollectConfig, collect, plan_chunks
 from w2e_ros.core.data import InteractionData
+from w2e_ros.experiments.collect import CollectConfig, collect, plan_chunks
 
 
 def _cfg(out, **kw) -> CollectConfig:

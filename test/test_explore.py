@@ -375,7 +375,7 @@ def test_fine_tuning_fits_the_explored_interactions(novel):
 def test_loop_explores_simulated_objects_and_learns_from_the_outcomes():
     from w2e_ros.core.evaluate import SuccessProbe, evaluation_targets
     from w2e_ros.core.explore import explore_targets
-    from w2e_ros.core.sim_world import SimWorld
+    from w2e_ros.experiments.sim_world import SimWorld
 
     world = SimWorld()
     torch.manual_seed(0)
@@ -399,7 +399,7 @@ def test_loop_explores_simulated_objects_and_learns_from_the_outcomes():
 @pytest.mark.slow
 def test_fewshot_spends_the_budget_per_object_over_all_novel_categories():
     from w2e_ros.core.explore import fewshot
-    from w2e_ros.core.sim_world import SimWorld
+    from w2e_ros.experiments.sim_world import SimWorld
 
     torch.manual_seed(0)
     model = W2EModel(SMALL)

@@ -195,7 +195,8 @@ def test_the_torch_check_counts_what_the_numpy_one_counted_on_simulated_clouds()
     """Every category's first training object, the exploring round's candidates."""
     from w2e_ros.core.categories import load_categories
     from w2e_ros.core.explore import sample_candidates
-    from w2e_ros.core.sim_world import SimWorld, Target
+    from w2e_ros.core.targets import Target
+    from w2e_ros.experiments.sim_world import SimWorld
 
     world, rng, cats = SimWorld(), np.random.default_rng(0), load_categories()
     for cat in cats.categories:
@@ -284,7 +285,8 @@ def test_a_rejected_approach_is_invalid_in_the_simulator():
     push is clear and valid."""
     pytest.importorskip("sapien")
     from w2e_ros.core.primitives import Action
-    from w2e_ros.core.sim_world import SimWorld, Target
+    from w2e_ros.core.targets import Target
+    from w2e_ros.experiments.sim_world import SimWorld
 
     world, target = SimWorld(), Target("cabinet", 40, 0)
     cloud = world.observe(target)

@@ -9,8 +9,8 @@ import torch
 from synthetic import synthetic_data
 
 from w2e_ros.core.config import ExploreConfig, FinetuneConfig, ModelConfig
-from w2e_ros.core.learnability import LearnabilityConfig, run_learnability
 from w2e_ros.core.model import W2EModel, save_model
+from w2e_ros.experiments.learnability import LearnabilityConfig, run_learnability
 
 torch.set_num_threads(2)
 SMALL = ModelConfig(num_points=256, sa_npoint=(64, 16, 8, 4))
@@ -115,7 +115,7 @@ def test_per_category_cli_writes_one_curve_per_category(setup):
 def test_pool_selections_pick_what_they_say():
     import numpy as np
 
-    from w2e_ros.core.learnability import select_pool
+    from w2e_ros.experiments.learnability import select_pool
 
     rng = np.random.default_rng(0)
     predicted = rng.random(200)
@@ -144,7 +144,7 @@ def test_pool_selections_pick_what_they_say():
 def test_unfamiliar_selections_use_the_similarity_not_the_labels():
     import numpy as np
 
-    from w2e_ros.core.learnability import select_pool
+    from w2e_ros.experiments.learnability import select_pool
 
     rng = np.random.default_rng(0)
     predicted, similarity = rng.random(200), rng.random(200)

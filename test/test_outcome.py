@@ -118,7 +118,8 @@ def test_clouds_that_cannot_be_judged_give_a_clear_error(drawer, opened):
 
 def test_offline_world_judges_from_clouds_when_asked(drawer):
     from w2e_ros.core.outcome import apply_cloud_outcome
-    from w2e_ros.core.sim_world import SimWorld, Target
+    from w2e_ros.core.targets import Target
+    from w2e_ros.experiments.sim_world import SimWorld
 
     with pytest.raises(ValueError, match="outcome_source must be one of"):
         SimWorld(outcome_source="camera")
@@ -140,8 +141,8 @@ def test_offline_world_judges_from_clouds_when_asked(drawer):
 def test_collect_labels_from_clouds_and_keeps_old_manifests(tmp_path):
     import json
 
-    from w2e_ros.core.collect import CollectConfig, collect
     from w2e_ros.core.data import InteractionData
+    from w2e_ros.experiments.collect import CollectConfig, collect
 
     base = CollectConfig(out="", categories=["cabinet"], observations=1, interactions=3,
                          workers=1, obs_per_shard=1)
@@ -164,8 +165,8 @@ def test_exploration_runs_on_cloud_outcomes():
     from w2e_ros.core.explore import explore, explore_targets
     from w2e_ros.core.finetune import W2EExplorer
     from w2e_ros.core.model import W2EModel
-    from w2e_ros.core.sim_world import SimWorld
     from w2e_ros.core.strategies import get_strategy
+    from w2e_ros.experiments.sim_world import SimWorld
 
     torch.manual_seed(0)
     cfg = ExploreConfig.from_dict(dict(budget=1, points_per_object=16, dirs_per_point=2,

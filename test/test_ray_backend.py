@@ -14,8 +14,8 @@ import pytest
 
 ray = pytest.importorskip("ray")
 
-from w2e_ros.core.backends import LocalBackend, RayBackend, make_backend, resolve  # noqa: E402
-from w2e_ros.core.collect import CollectConfig, collect  # noqa: E402
+from w2e_ros.experiments.backends import LocalBackend, RayBackend, make_backend, resolve  # noqa: E402
+from w2e_ros.experiments.collect import CollectConfig, collect  # noqa: E402
 
 
 @pytest.fixture(scope="module")

@@ -7,8 +7,9 @@ import pytest
 import torch
 
 from w2e_ros.core.model import load_model
-from w2e_ros.core.sim_world import SimWorld, Target
+from w2e_ros.core.targets import Target
 from w2e_ros.core.viz import normal_maps
+from w2e_ros.experiments.sim_world import SimWorld
 from w2e_ros.paths import default_checkpoint
 
 torch.set_num_threads(2)
@@ -40,10 +41,10 @@ def test_shipped_full_data_reference_ranks_novel_pulls_better_than_the_base_mode
     shipped base model, which never saw those categories."""
     import tempfile
 
-    from w2e_ros.core.collect import CollectConfig, collect
     from w2e_ros.core.data import InteractionData
     from w2e_ros.core.metrics import auroc
     from w2e_ros.core.predict import predict_interactions
+    from w2e_ros.experiments.collect import CollectConfig, collect
     from w2e_ros.paths import checkpoint_dir
 
     with tempfile.TemporaryDirectory() as tmp:

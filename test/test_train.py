@@ -176,7 +176,7 @@ def test_train_writes_checkpoint_metrics_and_resumes(tmp_path, data):
 
 @pytest.mark.slow
 def test_training_on_simulated_interactions_reduces_the_loss(tmp_path):
-    from w2e_ros.core.collect import CollectConfig, collect
+    from w2e_ros.experiments.collect import CollectConfig, collect
 
     collect(CollectConfig(out=str(tmp_path / "data"), categories=["cabinet", "faucet", "window"],
                           observations=2, interactions=24, primitives=("push",), workers=1))

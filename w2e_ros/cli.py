@@ -20,7 +20,7 @@ from w2e_ros.core.settings import add_arguments, from_namespace
 from w2e_ros.core.strategies import STRATEGIES
 
 if TYPE_CHECKING:
-    from w2e_ros.core.backends import Backend
+    from w2e_ros.experiments.backends import Backend
 
 Handler = Callable[[argparse.Namespace], int | None]
 
@@ -65,7 +65,7 @@ def _add_collect(sub: argparse._SubParsersAction) -> None:
 
 
 def _run_collect(a: argparse.Namespace) -> int:
-    from w2e_ros.core.collect import CollectConfig, collect
+    from w2e_ros.experiments.collect import CollectConfig, collect
 
     cfg = CollectConfig(
         out=a.out, categories=a.categories, split=a.split, observations=a.observations,
@@ -80,7 +80,7 @@ def _run_collect(a: argparse.Namespace) -> int:
 
 
 def _add_backend_args(p: argparse.ArgumentParser) -> None:
-    """Where the jobs of ``collect`` and ``benchmark`` run (w2e_ros.core.backends)."""
+    """Where the jobs of ``collect`` and ``benchmark`` run (w2e_ros.experiments.backends)."""
     p.add_argument("--backend", default="local", choices=["local", "ray"],
                    help="local processes, or one Ray task per job (a local Ray instance, or "
                         "the cluster at --address)")
@@ -91,7 +91,7 @@ def _add_backend_args(p: argparse.ArgumentParser) -> None:
 
 
 def _backend(a: argparse.Namespace, workers: int) -> contextlib.closing[Backend]:
-    from w2e_ros.core.backends import make_backend
+    from w2e_ros.experiments.backends import make_backend
 
     return contextlib.closing(make_backend(a.backend, workers, a.address))
 
@@ -273,9 +273,9 @@ def _run_fewshot(a: argparse.Namespace) -> int:
     from w2e_ros.core.data import InteractionData
     from w2e_ros.core.explore import fewshot
     from w2e_ros.core.model import load_model, save_model
-    from w2e_ros.core.sim_world import SimWorld
     from w2e_ros.core.strategies import get_strategy
     from w2e_ros.core.train import replay_data
+    from w2e_ros.experiments.sim_world import SimWorld
 
     torch.set_num_threads(a.threads)
     model, meta = load_model(a.model)
@@ -349,7 +349,7 @@ def _run_learnability(a: argparse.Namespace) -> int:
 
     import torch
 
-    from w2e_ros.core.learnability import (
+    from w2e_ros.experiments.learnability import (
         LearnabilityConfig,
         run_learnability,
         run_per_category,
@@ -403,7 +403,7 @@ def _run_evaluate(a: argparse.Namespace) -> int:
         evaluation_targets,
     )
     from w2e_ros.core.model import load_model
-    from w2e_ros.core.sim_world import SimWorld
+    from w2e_ros.experiments.sim_world import SimWorld
 
     torch.set_num_threads(a.threads)
     model, meta = load_model(a.model)
@@ -491,7 +491,7 @@ def _run_benchmark(a: argparse.Namespace) -> int:
 
     import torch
 
-    from w2e_ros.core.benchmark import (
+    from w2e_ros.experiments.benchmark import (
         BenchmarkConfig,
         merge_predictions,
         run_benchmark,
@@ -746,7 +746,7 @@ def _add_ceiling(sub: argparse._SubParsersAction) -> None:
 
 
 def _run_ceiling_labels(a: argparse.Namespace) -> int:
-    from w2e_ros.core.ceiling import LabelCheckConfig, label_smoothness, labels_table
+    from w2e_ros.experiments.ceiling import LabelCheckConfig, label_smoothness, labels_table
 
     res = label_smoothness(LabelCheckConfig(data=a.data, out=a.out, trials_per_primitive=a.trials,
                                             primitives=tuple(a.primitives), seed=a.seed))
@@ -756,7 +756,7 @@ def _run_ceiling_labels(a: argparse.Namespace) -> int:
 
 
 def _run_ceiling_oracle(a: argparse.Namespace) -> int:
-    from w2e_ros.core.ceiling import OracleConfig, local_oracle, oracle_table
+    from w2e_ros.experiments.ceiling import OracleConfig, local_oracle, oracle_table
 
     if a.samples < 1 or a.trials < 1 or any(r <= 0 for r in a.radii):
         raise SystemExit("w2e ceiling oracle: --trials and --samples must be >= 1 and every "
@@ -773,7 +773,7 @@ def _run_ceiling_oracle(a: argparse.Namespace) -> int:
 def _run_ceiling_fit(a: argparse.Namespace) -> int:
     import torch
 
-    from w2e_ros.core.ceiling import FitTestConfig, fit_test
+    from w2e_ros.experiments.ceiling import FitTestConfig, fit_test
 
     torch.set_num_threads(a.threads)
     res = fit_test(FitTestConfig(

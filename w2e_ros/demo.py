@@ -65,7 +65,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def _heatmaps(client, category: str, instance: int, primitive: str, out: Path,
               tag: str) -> Path:
     """Load one test instance alone, get its maps from the inference node, draw them."""
-    from w2e_ros.core.sim_world import stable_seed
+    from w2e_ros.core.targets import stable_seed
     from w2e_ros.core.viz import heatmap_figure
 
     t = client.now_s()

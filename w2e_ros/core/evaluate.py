@@ -148,7 +148,7 @@ def evaluation_instances(category: str, validate: bool = False, explored: int = 
 def evaluation_targets(categories: Sequence[str], per_category: int, state_seeds: int = 1,
                        validate: bool = False, explored: int = 10) -> list[Any]:
     """The first ``per_category`` evaluation instances of each category (x start states)."""
-    from w2e_ros.core.sim_world import Target
+    from w2e_ros.core.targets import Target
 
     return [Target(c, i, s) for c in categories
             for i in evaluation_instances(c, validate, explored)[:per_category]

@@ -427,7 +427,7 @@ def explore_targets(categories: Sequence[str], per_category: int = 10,
                     state_seeds: int = 1) -> list[Any]:
     """The EXPLORE-split instances of each category (10 per novel category in the paper)."""
     from w2e_ros.core.categories import load_categories
-    from w2e_ros.core.sim_world import Target
+    from w2e_ros.core.targets import Target
 
     cats = load_categories()
     return [Target(c, i, s) for c in categories

@@ -5,7 +5,7 @@ segmented cloud taken before and after it. :func:`judge_clouds` decides what the
 (:func:`w2e_ros.core.primitives.judge_motion`) decides from joint states: the part moved
 enough near the contact, and a pull moved it along the hand's pulling direction. It knows
 nothing of ROS or of the simulator; the executor node (``outcome_source: clouds``) and the
-offline world (:class:`w2e_ros.core.sim_world.SimWorld`, ``w2e collect --outcome-source
+offline world (:class:`w2e_ros.experiments.sim_world.SimWorld`, ``w2e collect --outcome-source
 clouds``) both call it.
 
 Method (robot frame, metres; nearest neighbours and local planes, no ICP):

@@ -62,8 +62,8 @@ from w2e_ros.core.config import ExploreConfig
 from w2e_ros.core.feasibility import DEFAULT_CHECK, Arm
 from w2e_ros.core.kinematics import BASE_POSE_DESCRIPTION, DEFAULT_BASE_POSE
 from w2e_ros.core.policy import ManipulatePolicy
-from w2e_ros.core.sim_world import stable_seed
 from w2e_ros.core.strategies import get_strategy
+from w2e_ros.core.targets import stable_seed
 from w2e_ros.ros.action_client import LockedActionClient
 from w2e_ros.ros.conversions import interaction_to_action
 from w2e_ros.ros.explore_service import (  # noqa: F401 - RosModel, RosWorld: the planner's halves

@@ -98,7 +98,7 @@ class _StoredTrial:
     """One stored trial, ready to be executed again as it was or perturbed."""
 
     def __init__(self, data: InteractionData, r: int) -> None:
-        from w2e_ros.core.sim_world import Target
+        from w2e_ros.core.targets import Target
 
         o = int(data.obs_index[r])
         self.target = Target(str(data.category[o]), int(data.instance[o]), int(data.obs_seed[o]))
@@ -125,7 +125,7 @@ def _run_stored_trials(cfg: LabelCheckConfig | OracleConfig, desc: str, fill,
     row, world, rng)`` add what it measures to each trial's row; (rows, seconds)."""
     from tqdm import tqdm
 
-    from w2e_ros.core.sim_world import SimWorld
+    from w2e_ros.experiments.sim_world import SimWorld
 
     data = InteractionData.load(cfg.data)
     world = world or SimWorld(num_points=int(data.points.shape[1]))

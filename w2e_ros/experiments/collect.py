@@ -12,7 +12,7 @@ mask), half of those on the protruding tenth of them (handles, knobs, free edges
 the approach directions within 30 deg of the inward normal, the rest uniform over the
 hemisphere. The fractions are flags of ``w2e collect`` and are stored with every shard.
 
-The shards' jobs run on a :mod:`w2e_ros.core.backends` backend: local processes
+The shards' jobs run on a :mod:`w2e_ros.experiments.backends` backend: local processes
 (``--workers``) or Ray tasks (``--backend ray``, a cluster with ``--address``); the jobs
 return their data and this process writes every shard, so the files are the same either way.
 
@@ -35,12 +35,13 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from w2e_ros.core.backends import Backend, LocalBackend
 from w2e_ros.core.categories import load_categories
 from w2e_ros.core.data import InteractionData
 from w2e_ros.core.primitives import Action, TrialResult
 from w2e_ros.core.proposals import ProposalConfig, Proposer
-from w2e_ros.core.sim_world import Cloud, SimWorld, Target, stable_seed
+from w2e_ros.core.targets import Target, stable_seed
+from w2e_ros.experiments.backends import Backend, LocalBackend
+from w2e_ros.experiments.sim_world import Cloud, SimWorld
 
 log = logging.getLogger("w2e.collect")
 

@@ -34,7 +34,6 @@ from typing import Any
 import numpy as np
 import torch
 
-from w2e_ros.core.backends import Backend, LocalBackend, resolve
 from w2e_ros.core.categories import load_categories
 from w2e_ros.core.config import ExploreConfig
 from w2e_ros.core.data import InteractionData
@@ -49,6 +48,7 @@ from w2e_ros.core.metrics import auroc, average_precision, fscore, r_precision
 from w2e_ros.core.model import W2EModel, load_model
 from w2e_ros.core.strategies import STRATEGIES, get_strategy
 from w2e_ros.core.train import replay_data
+from w2e_ros.experiments.backends import Backend, LocalBackend, resolve
 
 log = logging.getLogger("w2e.benchmark")
 
@@ -139,7 +139,7 @@ def run_benchmark(cfg: BenchmarkConfig, world: Any | None = None,
     ``backend.put`` (Ray: the object store, once per host); checkpoints are read from
     ``cfg.runs_dir``, which must be the same path on every host. Results come back here and
     every file is written by this process."""
-    from w2e_ros.core.sim_world import SimWorld
+    from w2e_ros.experiments.sim_world import SimWorld
 
     backend = backend or LocalBackend(1)
     out = Path(cfg.out)
@@ -211,7 +211,7 @@ def _group(cfg: BenchmarkConfig, prim: str, combo: str, test_all: InteractionDat
     key = (json.dumps(asdict(cfg), default=str), prim, combo)
     if key not in _GROUPS:
         if world is None:
-            from w2e_ros.core.sim_world import SimWorld
+            from w2e_ros.experiments.sim_world import SimWorld
 
             _WORKER_WORLD = _WORKER_WORLD or SimWorld()
             world = _WORKER_WORLD

@@ -1,7 +1,8 @@
 """The simulator as the exploration loop's world, for the offline commands.
 
-A target is an object instance in a start state; the ROS planner has its own world (the
-executor and bridge nodes) behind the same two calls, ``observe`` and ``execute``.
+A target (:class:`w2e_ros.core.targets.Target`) is an object instance in a start state; the
+ROS planner has its own world (the executor and bridge nodes) behind the same two calls,
+``observe`` and ``execute``.
 
 ``outcome_source`` says how a trial's success is judged: ``joints`` (default) by the
 simulator's joint states (:func:`w2e_ros.core.primitives.judge_motion`), ``clouds`` as a
@@ -13,7 +14,6 @@ the trial left it in, sampled anew) with :func:`w2e_ros.core.outcome.judge_cloud
 
 from __future__ import annotations
 
-import zlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,19 +29,7 @@ from w2e_ros.core.outcome import (
 )
 from w2e_ros.core.pointcloud import fps_indices
 from w2e_ros.core.primitives import Action, TrialResult
-
-
-@dataclass(frozen=True)
-class Target:
-    """One object to interact with: instance plus the seed of its start state and view."""
-
-    category: str
-    instance: int
-    state_seed: int = 0
-
-    @property
-    def name(self) -> str:
-        return f"{self.category}/{self.instance}/{self.state_seed}"
+from w2e_ros.core.targets import Target, stable_seed
 
 
 @dataclass
@@ -53,11 +41,6 @@ class Cloud:
     movable: np.ndarray  # (N,) bool (ground truth: collection and evaluation only)
     state: np.ndarray  # (J,) joint positions of the start state
     camera_pose: np.ndarray  # (4, 4)
-
-
-def stable_seed(*parts: object) -> int:
-    """A seed from names and numbers that is the same in every process and run."""
-    return zlib.crc32("/".join(str(p) for p in parts).encode()) & 0x7FFFFFFF
 
 
 class SimWorld:
