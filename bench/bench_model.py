@@ -25,7 +25,7 @@ import torch.nn.functional as F
 
 from w2e_ros.core.config import ModelConfig
 from w2e_ros.core.model import W2EModel
-from w2e_ros.core.train import Batch, RunningAccuracy, training_losses
+from w2e_ros.core.training import Batch, RunningAccuracy, training_losses
 
 
 def _time(fn, repeat: int) -> float:

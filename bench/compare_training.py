@@ -30,7 +30,7 @@ def _records(run: Path) -> list[dict]:
 
 def _score_checkpoint(path: str, data) -> dict:
     from w2e_ros.core.model import load_model
-    from w2e_ros.core.train import Validator, method_categories
+    from w2e_ros.core.training import Validator, method_categories
 
     model, meta = load_model(path, "cpu")
     model.eval()

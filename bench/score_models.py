@@ -27,7 +27,7 @@ def score(model_path: str, val_dirs: list[str], n_boot: int) -> dict:
     from w2e_ros.core.metrics import auroc, bootstrap_ci
     from w2e_ros.core.model import load_model
     from w2e_ros.core.predict import predict_interactions
-    from w2e_ros.core.train import Validator, method_categories
+    from w2e_ros.core.training import Validator, method_categories
 
     model, meta = load_model(model_path, "cpu")
     aff_cats, sim_cats = method_categories(meta["method"], meta["combo"])

@@ -24,7 +24,7 @@ EXPERIMENTS = "w2e_ros.experiments"
 
 # What a workstation next to a real arm runs: the learning core, the ROS helpers and the nodes.
 WORKSTATION_CORE = ["w2e_ros.core." + m for m in (
-    "primitives", "actions", "model", "finetune", "explore", "evaluate", "train", "predict",
+    "primitives", "actions", "model", "finetune", "explore", "evaluate", "training", "predict",
     "strategies", "metrics", "proposals", "session_log", "policy")]
 WORKSTATION_ROS = ["w2e_ros.ros.conversions", "w2e_ros.ros.waypoints", "w2e_ros.ros.segmentation",
                    "w2e_ros.ros.futures", "w2e_ros.ros.explore_service",
@@ -166,6 +166,8 @@ def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
 def test_core_modules_import_each_other_without_cycles():
     graph = _import_graph("w2e_ros.core")
     assert "w2e_ros.core.explore" in graph and graph["w2e_ros.core.explore"]
+    assert graph["w2e_ros.core.training.trainer"] >= {"w2e_ros.core.training.losses",
+                                                      "w2e_ros.core.model"}
     assert _cycles(graph) == []
 
 

@@ -26,7 +26,7 @@ import torch.multiprocessing as tmp
 from synthetic import synthetic_data
 
 from w2e_ros.core.config import ModelConfig, TrainConfig
-from w2e_ros.core.train import train
+from w2e_ros.core.training import train
 
 SMALL = ModelConfig(num_points=256, sa_npoint=(64, 16, 8, 4))
 STEPS = 8

@@ -203,7 +203,7 @@ def test_a_balanced_similarity_stays_balanced_while_fine_tuning(novel):
     The similarity loss is then the class-balanced BCE to the correctness target."""
     import torch.nn.functional as F
 
-    from w2e_ros.core.train import RunningAccuracy
+    from w2e_ros.core.training import RunningAccuracy
 
     rows = np.concatenate([np.flatnonzero(novel.success)[:2],
                            np.flatnonzero(~novel.success)[:18]])

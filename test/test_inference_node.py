@@ -393,7 +393,7 @@ def test_a_replay_pack_is_replayed_whole_and_a_collection_by_replay_fraction(
     from synthetic import synthetic_data
 
     from w2e_ros.core.data import InteractionData
-    from w2e_ros.core.train import replay_pack
+    from w2e_ros.core.training import replay_pack
     from w2e_ros.paths import default_replay_pack
 
     data = InteractionData.concat([
@@ -435,7 +435,7 @@ def test_services_answer_while_the_replay_is_encoded_and_updates_wait_for_it(
     from synthetic import synthetic_data
 
     from w2e_ros.core.finetune import W2EExplorer
-    from w2e_ros.core.train import replay_pack
+    from w2e_ros.core.training import replay_pack
 
     data = synthetic_data(obs_per_cat=5, per_obs=40, primitive="pull", seed=1)
     replay_pack(data, "w2e", "cfw", primitives=("pull",), fraction=0.05).save_shard(

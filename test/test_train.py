@@ -17,7 +17,7 @@ from w2e_ros.core.data import InteractionData
 from w2e_ros.core.metrics import auroc
 from w2e_ros.core.model import load_model
 from w2e_ros.core.predict import predict_interactions
-from w2e_ros.core.train import (
+from w2e_ros.core.training import (
     BalancedSampler,
     RunningAccuracy,
     Trainer,
@@ -180,7 +180,7 @@ def test_training_on_simulated_interactions_reduces_the_loss(tmp_path):
 
     collect(CollectConfig(out=str(tmp_path / "data"), categories=["cabinet", "faucet", "window"],
                           observations=2, interactions=24, primitives=("push",), workers=1))
-    from w2e_ros.core.train import load_training_data
+    from w2e_ros.core.training import load_training_data
 
     data = load_training_data(tmp_path / "data", "w2e", "cfw", "push")
     assert data.points.shape[1:] == (2048, 3) and data.success.any()
@@ -351,7 +351,7 @@ def test_train_stops_when_validation_levels_off(tmp_path, data, val_data):
 
 
 def test_patience_cannot_stop_a_curve_that_still_rises():
-    from w2e_ros.core.train import still_rising
+    from w2e_ros.core.training import still_rising
 
     rng = np.random.default_rng(0)
     # a noisy climb: no new best in the last few checks, yet the trend is up
@@ -375,7 +375,7 @@ def test_trainer_levels_off_only_without_a_new_best_and_without_a_rise(data):
 
 
 def test_calibration_refits_only_the_similarity_head_to_the_final_correctness(data):
-    from w2e_ros.core.train import calibrate_similarity
+    from w2e_ros.core.training import calibrate_similarity
 
     torch.manual_seed(0)
     model = __import__("w2e_ros.core.model", fromlist=["W2EModel"]).W2EModel(SMALL)
@@ -399,7 +399,7 @@ def test_replay_pack_samples_each_primitive_keeps_only_its_clouds_and_the_cli_wr
     import sys
 
     from w2e_ros.core.model import W2EModel, save_model
-    from w2e_ros.core.train import REPLAY_PACK, replay_pack
+    from w2e_ros.core.training import REPLAY_PACK, replay_pack
 
     data = InteractionData.concat([
         synthetic_data(obs_per_cat=5, per_obs=40, primitive="push"),
@@ -576,7 +576,7 @@ def test_w2e_calibrate_combo_retargets_a_model_to_a_combination_with_the_same_c_
 def test_yaw_augmentation_turns_clouds_and_their_actions_together(data):
     """Each cloud and the actions on it turn by the same angle about the vertical: heights,
     distances and every action's angle to the cloud's geometry are kept, labels untouched."""
-    from w2e_ros.core.train import rotate_yaw
+    from w2e_ros.core.training import rotate_yaw
 
     t = Trainer(_cfg(), data, SMALL, device=CPU)
     b = t.next_batch()

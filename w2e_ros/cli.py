@@ -1,8 +1,8 @@
 """The ``w2e`` command line: one command, one verb per step of the workflow.
 
-Each verb parses its flags here and calls one function of the core (or of the ROS layer for
-``bringup`` and ``demo``); heavy modules are imported only when their verb runs, so
-``w2e --help`` is instant.
+Each verb parses its flags here and calls one function of the core, of the simulator
+experiments (``collect``, ``benchmark``, ...) or of the ROS layer (``bringup`` and ``demo``);
+heavy modules are imported only when their verb runs, so ``w2e --help`` is instant.
 """
 
 from __future__ import annotations
@@ -194,7 +194,7 @@ def _run_train(a: argparse.Namespace) -> int:
     import math
 
     from w2e_ros.core.data import InteractionData
-    from w2e_ros.core.train import load_training_data, run_name, train
+    from w2e_ros.core.training import load_training_data, run_name, train
 
     cfg = TrainConfig(method=a.method, combo=a.combo, primitive=a.primitive, lr=a.lr,
                       weight_decay=a.weight_decay, sim_loss=a.sim_loss,
@@ -274,7 +274,7 @@ def _run_fewshot(a: argparse.Namespace) -> int:
     from w2e_ros.core.explore import fewshot
     from w2e_ros.core.model import load_model, save_model
     from w2e_ros.core.strategies import get_strategy
-    from w2e_ros.core.train import replay_data
+    from w2e_ros.core.training import replay_data
     from w2e_ros.experiments.sim_world import SimWorld
 
     torch.set_num_threads(a.threads)
@@ -620,7 +620,7 @@ def _run_calibrate(a: argparse.Namespace) -> int:
     import torch
 
     from w2e_ros.core.model import load_model, save_model
-    from w2e_ros.core.train import (
+    from w2e_ros.core.training import (
         calibrate_similarity,
         load_training_data,
         method_categories,
@@ -673,7 +673,7 @@ def _run_replay_pack(a: argparse.Namespace) -> int:
 
     from w2e_ros.core.data import InteractionData
     from w2e_ros.core.model import load_model
-    from w2e_ros.core.train import replay_pack
+    from w2e_ros.core.training import replay_pack
 
     if not 0 < a.fraction <= 1:
         raise ValueError(f"--fraction must be in (0, 1], got {a.fraction}")

@@ -39,7 +39,7 @@ from w2e_ros.core.model import W2EModel
 from w2e_ros.core.predict import FEATURES, FeatureCache, cloud_key, encoder_key
 from w2e_ros.core.strategies import Scored
 from w2e_ros.core.threads import torch_threads
-from w2e_ros.core.train import RunningAccuracy, make_deterministic
+from w2e_ros.core.training import RunningAccuracy, make_deterministic
 
 log = logging.getLogger("w2e.finetune")
 

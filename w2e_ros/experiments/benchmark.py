@@ -47,7 +47,7 @@ from w2e_ros.core.explore import fewshot
 from w2e_ros.core.metrics import auroc, average_precision, fscore, r_precision
 from w2e_ros.core.model import W2EModel, load_model
 from w2e_ros.core.strategies import STRATEGIES, get_strategy
-from w2e_ros.core.train import replay_data
+from w2e_ros.core.training import replay_data
 from w2e_ros.experiments.backends import Backend, LocalBackend, resolve
 
 log = logging.getLogger("w2e.benchmark")

@@ -389,7 +389,7 @@ def end_to_end_fit(cfg: FitTestConfig, sub: InteractionData,
     from tqdm import tqdm
 
     from w2e_ros.core.predict import predict_interactions
-    from w2e_ros.core.train import Trainer
+    from w2e_ros.core.training import Trainer
 
     tcfg = TrainConfig(method=cfg.method, combo=cfg.combo, primitive=cfg.primitive,
                        steps=cfg.steps, seed=cfg.seed, **cfg.train)
@@ -412,7 +412,7 @@ def fit_test(cfg: FitTestConfig, progress: bool = True) -> dict:
     """Fit ``cfg.interactions`` training interactions (end to end, or a head on frozen
     features) and score the model on exactly those rows (flipped copies aside): the question
     is only whether it can fit them. Writes ``fit.json`` under ``cfg.out``."""
-    from w2e_ros.core.train import load_training_data
+    from w2e_ros.core.training import load_training_data
 
     data = load_training_data(cfg.data, cfg.method, cfg.combo, cfg.primitive)
     sub = fit_subset(data, cfg.interactions, cfg.seed)

@@ -46,7 +46,7 @@ from w2e_ros.core.metrics import auroc, classification_metrics, within_class_aur
 from w2e_ros.core.model import W2EModel, load_model
 from w2e_ros.core.predict import predict_interactions
 from w2e_ros.core.strategies import Scored, get_strategy
-from w2e_ros.core.train import replay_data
+from w2e_ros.core.training import replay_data
 
 log = logging.getLogger("w2e.learnability")
 

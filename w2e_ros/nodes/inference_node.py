@@ -205,7 +205,7 @@ class InferenceNode(Node):
         ``background`` (tens of seconds for the shipped pack on a CPU: the services must not
         wait for it), else before returning."""
         from w2e_ros.core.data import InteractionData
-        from w2e_ros.core.train import REPLAY_PACK, load_training_data_from, method_categories
+        from w2e_ros.core.training import REPLAY_PACK, load_training_data_from, method_categories
 
         s = self.settings
         path = self._checkpoint(primitive)
