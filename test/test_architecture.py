@@ -25,7 +25,7 @@ EXPERIMENTS = "w2e_ros.experiments"
 # What a workstation next to a real arm runs: the learning core, the ROS helpers and the nodes.
 WORKSTATION_CORE = ["w2e_ros.core." + m for m in (
     "primitives", "actions", "model", "finetune", "explore", "evaluate", "training", "predict",
-    "strategies", "metrics", "proposals", "session_log", "policy")]
+    "strategies", "metrics", "proposals", "session_log", "policy", "targets")]
 WORKSTATION_ROS = ["w2e_ros.ros.conversions", "w2e_ros.ros.waypoints", "w2e_ros.ros.segmentation",
                    "w2e_ros.ros.futures", "w2e_ros.ros.explore_service",
                    "w2e_ros.client"] + ["w2e_ros.nodes." + m for m in (
