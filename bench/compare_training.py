@@ -39,6 +39,69 @@ def _score_checkpoint(path: str, data) -> dict:
     return {"step": meta.get("step", -1), **{f"val_{k}": v for k, v in out.items()}}
 
 
+def _tables(curves: dict[str, list[dict]], points: dict[str, dict],
+            metrics: tuple[str, ...]) -> str:
+    """The markdown: each run's best-step row and each checkpoint's, then every validated
+    step."""
+
+    def cell(r: dict, m: str) -> str:
+        v = r.get(f"val_{m}")
+        return "–" if v is None or not np.isfinite(v) else f"{100 * v:.1f}"
+
+    lines = ["| run | step | " + " | ".join(metrics) + " |",
+             "|---|---|" + "---|" * len(metrics)]
+    for label, recs in curves.items():
+        for r in recs:
+            lines.append(f"| {label} | {r['step']} | " + " | ".join(cell(r, m) for m in metrics)
+                         + " |")
+    best = ["| run (best step by the training-category score) | step | "
+            + " | ".join(metrics) + " |", "|---|---|" + "---|" * len(metrics)]
+    for label, recs in curves.items():
+        r = max(recs, key=lambda r: r["val_score"])
+        best.append(f"| {label} | {r['step']} | " + " | ".join(cell(r, m) for m in metrics)
+                    + " |")
+    for label, r in points.items():
+        best.append(f"| {label} | {r['step']} | " + " | ".join(cell(r, m) for m in metrics)
+                    + " |")
+    return ("Held-out validation, % (caff / csim: unseen instances of the training categories "
+            "(a where2act model's caff holds all three); novel: explore instances of the 11 "
+            "novel categories, the validation split). Rows of runs are as validated during "
+            "training, before the similarity calibration; rows of checkpoints are scored now."
+            "\n\n"
+            + "\n".join(best) + "\n\nEvery validated step:\n\n" + "\n".join(lines) + "\n")
+
+
+def _figure(curves: dict[str, list[dict]], points: dict[str, dict], path: Path) -> None:
+    """One panel per metric: the runs' validation curves, the checkpoints as stars."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    shown = tuple(m for m in ("caff_auroc", "csim_auroc", "novel_auroc", "novel_fscore")
+                  if any(recs and f"val_{m}" in recs[0] for recs in curves.values())
+                  or any(f"val_{m}" in r for r in points.values()))
+    colour = {label: f"C{i}" for i, label in enumerate([*curves, *points])}
+    fig, axes = plt.subplots(1, len(shown), figsize=(4 * len(shown), 3.4), squeeze=False)
+    axes = axes[0]
+    for ax, m in zip(axes, shown, strict=True):
+        for label, recs in curves.items():
+            if recs and f"val_{m}" in recs[0]:  # a where2act run has no csim group
+                ax.plot([r["step"] for r in recs], [100 * r[f"val_{m}"] for r in recs], "o-",
+                        label=label, ms=3, color=colour[label])
+        for label, r in points.items():
+            if f"val_{m}" in r:
+                ax.plot([r["step"]], [100 * r[f"val_{m}"]], "*", ms=10, label=label,
+                        color=colour[label])
+        ax.set_title(m.replace("_", " ") + (" (where2act: all 3)" if m == "caff_auroc" else ""))
+        ax.set_xlabel("step")
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("%")
+    axes[-1].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--runs", nargs="*", default=[], help="LABEL=RUN_DIR")
@@ -68,65 +131,12 @@ def main() -> int:
             label, path = spec.split("=", 1)
             points[label] = _score_checkpoint(path, val)
 
-    metrics = tuple(a.metrics)
-
-    def cell(r: dict, m: str) -> str:
-        v = r.get(f"val_{m}")
-        return "–" if v is None or not np.isfinite(v) else f"{100 * v:.1f}"
-
-    lines = ["| run | step | " + " | ".join(metrics) + " |",
-             "|---|---|" + "---|" * len(metrics)]
-    for label, recs in curves.items():
-        for r in recs:
-            lines.append(f"| {label} | {r['step']} | " + " | ".join(cell(r, m) for m in metrics)
-                         + " |")
-    best = ["| run (best step by the training-category score) | step | "
-            + " | ".join(metrics) + " |", "|---|---|" + "---|" * len(metrics)]
-    for label, recs in curves.items():
-        r = max(recs, key=lambda r: r["val_score"])
-        best.append(f"| {label} | {r['step']} | " + " | ".join(cell(r, m) for m in metrics)
-                    + " |")
-    for label, r in points.items():
-        best.append(f"| {label} | {r['step']} | " + " | ".join(cell(r, m) for m in metrics)
-                    + " |")
-    text = ("Held-out validation, % (caff / csim: unseen instances of the training categories "
-            "(a where2act model's caff holds all three); novel: explore instances of the 11 "
-            "novel categories, the validation split). Rows of runs are as validated during "
-            "training, before the similarity calibration; rows of checkpoints are scored now."
-            "\n\n"
-            + "\n".join(best) + "\n\nEvery validated step:\n\n" + "\n".join(lines) + "\n")
+    text = _tables(curves, points, tuple(a.metrics))
     (out / f"{a.name}.md").write_text(text)
     (out / f"{a.name}.json").write_text(json.dumps(
         {"curves": curves, "checkpoints": points}, indent=1))
     print(text)
-
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    shown = tuple(m for m in ("caff_auroc", "csim_auroc", "novel_auroc", "novel_fscore")
-                  if any(recs and f"val_{m}" in recs[0] for recs in curves.values())
-                  or any(f"val_{m}" in r for r in points.values()))
-    colour = {label: f"C{i}" for i, label in enumerate([*curves, *points])}
-    fig, axes = plt.subplots(1, len(shown), figsize=(4 * len(shown), 3.4), squeeze=False)
-    axes = axes[0]
-    for ax, m in zip(axes, shown, strict=True):
-        for label, recs in curves.items():
-            if recs and f"val_{m}" in recs[0]:  # a where2act run has no csim group
-                ax.plot([r["step"] for r in recs], [100 * r[f"val_{m}"] for r in recs], "o-",
-                        label=label, ms=3, color=colour[label])
-        for label, r in points.items():
-            if f"val_{m}" in r:
-                ax.plot([r["step"]], [100 * r[f"val_{m}"]], "*", ms=10, label=label,
-                        color=colour[label])
-        ax.set_title(m.replace("_", " ") + (" (where2act: all 3)" if m == "caff_auroc" else ""))
-        ax.set_xlabel("step")
-        ax.grid(alpha=0.3)
-    axes[0].set_ylabel("%")
-    axes[-1].legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(out / f"{a.name}.png", dpi=110)
+    _figure(curves, points, out / f"{a.name}.png")
     return 0
 
 
