@@ -20,6 +20,7 @@ from rclpy.action import ActionClient  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from sensor_msgs.msg import JointState, PointCloud2  # noqa: E402
+from visualization_msgs.msg import MarkerArray  # noqa: E402
 from w2e_msgs.action import ExecuteInteraction, FollowWaypoints  # noqa: E402
 from w2e_msgs.msg import Interaction, SceneObject, SegmentedObjects  # noqa: E402
 from w2e_msgs.srv import LoadScene  # noqa: E402
@@ -141,10 +142,13 @@ def test_pull_on_drawer_handle_opens_it(stack):
     # fronts are marked, the cabinet's body is not
     assert 0 < np.count_nonzero(seg.fields["movable"]) < 2048
 
+    markers: list[MarkerArray] = []  # what RViz gets: the interaction, coloured by outcome
+    client.node.create_subscription(MarkerArray, "interaction_markers", markers.append,
+                                    LATCHED_QOS)
     act = ActionClient(client.node, ExecuteInteraction, "execute_interaction")
     client.wait(act.server_is_ready, 30.0, "execute_interaction")
-    goal = ExecuteInteraction.Goal(
-        interaction=action_to_interaction(_handle_pull(resp, instance, joint), obj_id))
+    pull = _handle_pull(resp, instance, joint)
+    goal = ExecuteInteraction.Goal(interaction=action_to_interaction(pull, obj_id))
     phases: list[str] = []
     t0 = time.perf_counter()
     handle = client.result(act.send_goal_async(
@@ -159,6 +163,11 @@ def test_pull_on_drawer_handle_opens_it(stack):
     assert outcome.joint_index == joint and outcome.motion > 0.01
     assert outcome.contact_displacement.x > 0.01  # the handle came towards the gripper
     assert phases[0] == "planning" and phases[-1] == "done"
+    client.wait(lambda: markers and markers[-1].markers[-1].text.startswith("pull: success"),
+                10.0, "the interaction's markers, green")
+    contact = markers[-1].markers[2].pose.position  # DELETEALL, arrow, then the contact
+    assert np.allclose([contact.x, contact.y, contact.z], pull.point, atol=1e-6)
+    assert markers[-1].markers[2].color.g > 0.5 > markers[-1].markers[2].color.r
     # the bridge's object really stays open afterwards
     client.wait(lambda: joint_states and joint_states[-1].position
                 and joint_states[-1].position[joint] > closed[joint] + 0.01, 10.0,

@@ -36,6 +36,7 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallb
 from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.time import Time
+from visualization_msgs.msg import MarkerArray
 from w2e_msgs.action import ExecuteInteraction, FollowWaypoints
 from w2e_msgs.msg import InteractionOutcome, SegmentedObjects
 
@@ -55,6 +56,7 @@ from w2e_ros.ros.conversions import (
     trial_result_to_outcome,
 )
 from w2e_ros.ros.futures import StackError, WaitTimeoutError, wait_future
+from w2e_ros.ros.markers import interaction_markers, outcome_state
 from w2e_ros.ros.params import ParameterError, declare_typed_parameters, describe, param
 from w2e_ros.ros.peers import PeerWatch, announce
 from w2e_ros.ros.pointcloud import cloud_to_arrays
@@ -88,6 +90,9 @@ class ExecutorSettings:
     cloud_radius: float = param(
         DEFAULT_JUDGE.radius, "clouds: neighbourhood of the contact whose motion is judged (m)",
         min=0.0)
+    publish_markers: bool = param(
+        True, "publish interaction_markers (visualization_msgs/MarkerArray) for RViz: the "
+        "approach, the contact and the gripper's path of each interaction, coloured by outcome")
 
 
 class GripperExecutorNode(Node):
@@ -118,6 +123,8 @@ class GripperExecutorNode(Node):
             goal_callback=lambda _goal: GoalResponse.ACCEPT,
             cancel_callback=lambda _goal: CancelResponse.REJECT,  # a trial is atomic
             callback_group=MutuallyExclusiveCallbackGroup())
+        self._markers = (self.create_publisher(MarkerArray, "interaction_markers", LATCHED_QOS)
+                         if s.publish_markers else None)
         announce(self, ["execute_interaction"])
         # the robot side's process (bridge or arm adapter): its death ends a trial at once
         self._robot_peer = PeerWatch(self, s.robot_action, "the robot side",
@@ -130,8 +137,12 @@ class GripperExecutorNode(Node):
             goal_handle.publish_feedback(
                 ExecuteInteraction.Feedback(phase=name, waypoint=k, num_waypoints=n))
 
+        shown: list = []  # (action, plan) once planned: the markers follow the outcome
+
         def fail(reason: str) -> ExecuteInteraction.Result:
             self.get_logger().error(f"interaction refused: {reason}")
+            if shown:
+                self._show(*shown, "invalid", f"refused: {reason[:60]}")
             goal_handle.abort()
             return ExecuteInteraction.Result(outcome=InteractionOutcome(
                 valid=False, success=False, joint_index=-1, reason=reason))
@@ -142,6 +153,8 @@ class GripperExecutorNode(Node):
             plan = plan_waypoints(action)
         except ValueError as err:
             return fail(str(err))
+        shown[:] = [action, plan]
+        self._show(action, plan, "planned")
         goal = FollowWaypoints.Goal(
             waypoints=[to_pose(p, plan.rotation) for p in plan.positions],
             gripper=list(plan.gripper), initial_gripper=plan.initial_gripper,
@@ -172,13 +185,33 @@ class GripperExecutorNode(Node):
             after = None
             if clouds and res.valid:
                 after = self._wait_cloud(interaction.object_id, action, self._last_end)
+        judged = self._trial(action, res, clouds, before, after)
+        if isinstance(judged, str):
+            return fail(judged)
+        trial, note = judged
+        outcome = trial_result_to_outcome(trial)
+        phase("done", n, n)
+        state = outcome_state(outcome.valid, outcome.success)
+        self._show(action, plan, state, f"{state} ({outcome.motion:+.3f})" if outcome.valid
+                   else f"invalid: {outcome.reason[:60]}")
+        self.get_logger().info(
+            f"{action.primitive} on object {interaction.object_id}: valid={outcome.valid} "
+            f"success={outcome.success} motion={outcome.motion:+.4f} "
+            f"part={outcome.moved_part or '-'} {outcome.reason}{note}")
+        goal_handle.succeed()
+        return ExecuteInteraction.Result(outcome=outcome)
+
+    def _trial(self, action: Action, res: FollowWaypoints.Result, clouds: bool, before,
+               after) -> tuple[TrialResult, str] | str:
+        """The trial as the robot side measured it (and the clouds judged it, with a note),
+        or why it cannot be judged."""
         if not res.valid and not res.joints_before.position:
-            return fail(res.message or "the robot could not follow the trajectory")
+            return res.message or "the robot could not follow the trajectory"
         if not clouds and res.valid and not len(res.joints_before.position):
             # a real arm (or the arm adapter) measures no object joints: judging "nothing
             # moved" from that would label every trial a failure and teach the model so
-            return fail("outcome_source joints, but the robot side reported no object joint "
-                        "states (a real arm or the arm adapter): set outcome_source: clouds")
+            return ("outcome_source joints, but the robot side reported no object joint "
+                    "states (a real arm or the arm adapter): set outcome_source: clouds")
         trial = outcome_from_measurement(
             action,
             joints_before=np.asarray(res.joints_before.position),
@@ -190,18 +223,16 @@ class GripperExecutorNode(Node):
             valid=bool(res.valid),
             reason=res.message,
         )
-        note = ""
         if clouds and trial.valid:
-            trial, note = self._by_clouds(trial, before, after, action, res)
-        outcome = trial_result_to_outcome(trial)
-        phase("done", n, n)
-        self.get_logger().info(
-            f"{action.primitive} on object {interaction.object_id}: valid={outcome.valid} "
-            f"success={outcome.success} motion={outcome.motion:+.4f} "
-            f"part={outcome.moved_part or '-'} {outcome.reason}{note}")
-        goal_handle.succeed()
-        return ExecuteInteraction.Result(outcome=outcome)
+            return self._by_clouds(trial, before, after, action, res)
+        return trial, ""
 
+    def _show(self, action, plan, state: str, label: str = "") -> None:
+        """The interaction's markers for RViz (``publish_markers``)."""
+        if self._markers is not None:
+            self._markers.publish(interaction_markers(
+                action, plan.positions, self.settings.frame_id,
+                self.get_clock().now().to_msg(), state, label))
 
     # -- outcome from clouds ------------------------------------------------------------------
     def _follow(self, goal: FollowWaypoints.Goal, on_feedback) -> FollowWaypoints.Result | str:
