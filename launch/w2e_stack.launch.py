@@ -11,6 +11,8 @@ The same nodes, names and parameter file as ``w2e bringup`` (which is what runs 
                              when the sim bridge's robot is panda, live on its arm_base_pose)
     respawn:=true|false      start a node again when it dies (as w2e bringup --respawn;
                              launch_ros waits respawn_delay:=<s> each time, with no limit)
+    rviz:=true|false         also start rviz2 with share/w2e_ros/config/w2e.rviz (its topics
+                             are the un-namespaced ones; default false)
 
 Each node gets its own section of the YAML as a parameter dictionary, so the plain
 ``node_name:`` keys work under any namespace (what nav2 does with RewrittenYaml). The nodes
@@ -85,6 +87,10 @@ def _nodes(context, *args, **kwargs):
             respawn=respawn,
             respawn_delay=respawn_delay,
         ))
+    if LaunchConfiguration("rviz").perform(context).lower() in ("true", "1", "yes"):
+        layout = os.path.join(get_package_share_directory("w2e_ros"), "config", "w2e.rviz")
+        actions.append(Node(package="rviz2", executable="rviz2", name="rviz2",
+                            arguments=["-d", layout], output="screen"))
     return actions
 
 
@@ -112,5 +118,7 @@ def generate_launch_description() -> LaunchDescription:
                               description="start a node again when its process dies"),
         DeclareLaunchArgument("respawn_delay", default_value="1.0",
                               description="seconds before a node is started again"),
+        DeclareLaunchArgument("rviz", default_value="false",
+                              description="also start rviz2 with config/w2e.rviz"),
         OpaqueFunction(function=_nodes),
     ])
