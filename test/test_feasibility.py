@@ -334,9 +334,9 @@ def test_first_feasible_skips_blocked_and_unreachable_candidates_in_order():
     wall = np.stack([np.full(y.size, 0.57), y.ravel(), z.ravel()], axis=1)
     cloud = np.concatenate([pts, wall])
     k, refused = first_feasible(cloud, pts, up, fwd, "pull", Arm("panda"), chunk=2)
-    assert k == 2 and refused == {"blocked": 1, "unreachable": 1}
+    assert k == 2 and refused == {"blocked": 1, "unreachable": 1, "arm_blocked": 0}
     k, refused = first_feasible(cloud, pts, up, fwd, "pull", Arm("panda"), check=None)
-    assert k == 1 and refused == {"blocked": 0, "unreachable": 1}
+    assert k == 1 and refused == {"blocked": 0, "unreachable": 1, "arm_blocked": 0}
     assert first_feasible(cloud, pts, up, fwd, "pull", FLYING, check=None)[0] == 0
     assert first_feasible(cloud, pts[[0, 3]], up[[0, 3]], fwd[[0, 3]], "pull",
                           Arm("panda"))[0] == -1

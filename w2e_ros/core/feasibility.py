@@ -22,6 +22,7 @@ replaced.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -31,10 +32,12 @@ from w2e_ros.core.primitives import (
     FINGER_HALF,
     FINGER_JOINT_Z,
     FINGER_LENGTH,
+    FINGER_MAX,
     PALM_HALF,
     PUSH_START,
     schedule,
 )
+from w2e_ros.core.settings import setting
 from w2e_ros.core.threads import torch_threads
 
 
@@ -365,26 +368,248 @@ def arm_reachable(point: np.ndarray, up: np.ndarray, forward: np.ndarray, primit
 
 def first_feasible(cloud: np.ndarray | None, point: np.ndarray, up: np.ndarray,
                    forward: np.ndarray, primitive: str, arm: Arm = FLYING,
-                   check: ApproachCheck | None = DEFAULT_CHECK, chunk: int = 32
-                   ) -> tuple[int, dict[str, int]]:
-    """Index of the first candidate (best first) whose approach is clear (``check``; None:
-    not checked) and that ``arm`` can reach, -1 when none is, and how many candidates each
-    test refused. The IK runs on the clear candidates in chunks of ``chunk``, in order, and
-    stops at the first chunk holding a reachable one: the best candidates are usually
-    decided after one chunk."""
+                   check: ApproachCheck | None = DEFAULT_CHECK, chunk: int = 32,
+                   arm_check: ArmCheck | None = None) -> tuple[int, dict[str, int]]:
+    """:func:`feasible`'s index and how many candidates each test refused
+    (:meth:`Feasible.counts`)."""
+    f = feasible(cloud, point, up, forward, primitive, arm, check, arm_check, chunk)
+    return f.index, f.counts()
+
+
+# --- the whole arm along its trajectory -------------------------------------------------
+@dataclass(frozen=True)
+class ArmCheck:
+    """Settings of the whole-arm check (used only with a robot model: ``arm: panda``; the
+    flying hand keeps the hand-only approach check)."""
+
+    check_arm: bool = setting(True, "arm panda: also check the Panda's links (capsules around "
+                              "franka_description's collision meshes) along the planned joint "
+                              "trajectory, the free move to the start pose included, against "
+                              "the observed cloud, and the links and the hand against the table "
+                              "plane (core.feasibility); false, or the flying hand: the hand's "
+                              "approach only")
+    arm_margin: float = setting(0.01, "arm panda, check_arm: the links' capsules are grown by "
+                                "this much (m), and the links stay this far above the table "
+                                "plane", min=0.0)
+    table_height: float = setting(0.0, "arm panda, check_arm: height (m) of the table plane "
+                                  "the objects stand on above the arm's base (panda_link0), "
+                                  "along the frame's z (0: the base stands on the table)")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+DEFAULT_ARM_CHECK = ArmCheck()
+SWEEP_STEP = 0.01
+"""m: the arm's path is sampled (joints interpolated linearly, as the trajectory controller
+moves between points) so that no capsule end moves more than this between two samples."""
+FIXED_LINKS = ("panda_link0",)
+"""Bolted to the table: not checked against its plane."""
+
+
+@dataclass(frozen=True)
+class Refusal:
+    """Why one candidate is not executed, as :class:`w2e_ros.core.kinematics.Unreachable`
+    says it (a reason and the waypoint), with the candidate, the test that refused it and the
+    part: ``hand`` (its approach runs into the cloud: the hand-only check), ``reach`` (the arm
+    cannot follow the waypoints), ``arm`` (a link runs into the cloud), ``table`` (a link or
+    the hand goes below the table plane). ``waypoint``: the waypoint the arm was moving to (0:
+    the free move to the start pose), -1: none in particular."""
+
+    candidate: int
+    test: str
+    part: str
+    waypoint: int
+    reason: str
+
+
+def _towards(waypoint: np.ndarray) -> np.ndarray:
+    """(P,) for each point of a path, the waypoint it moves to (the start joints: 0)."""
+    out, nxt = np.zeros(len(waypoint), int), int(waypoint.max())
+    for i in range(len(waypoint) - 1, 0, -1):
+        if waypoint[i] >= 0:
+            nxt = int(waypoint[i])
+        out[i] = nxt
+    return out
+
+
+def _sweep(q: np.ndarray, towards: np.ndarray, base: np.ndarray
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Samples of one joint path (P, 7): capsule ends (S, K, 2, 3) in the world, hand poses
+    (S, 4, 4) and the waypoint each sample moves to (S,)."""
+    from w2e_ros.core import kinematics as kin
+
+    ends, _, _ = kin.capsules(q, base)
+    move = np.abs(np.diff(ends, axis=0)).max(axis=(1, 2, 3))  # (P-1,) largest end motion
+    n = np.maximum(1, np.ceil(move / SWEEP_STEP).astype(int))
+    parts, to = [q[:1]], [towards[:1]]
+    for i in range(1, len(q)):
+        s = np.arange(1, n[i - 1] + 1)[:, None] / n[i - 1]
+        parts.append(q[i - 1] + s * (q[i] - q[i - 1]))
+        to.append(np.full(n[i - 1], towards[i]))
+    qs = np.concatenate(parts)
+    ends, _, _ = kin.capsules(qs, base)
+    hand = base @ kin.link_poses(qs)[:, kin.LINKS.index("panda_hand")]
+    return ends, hand, np.concatenate(to)
+
+
+def _segment_hits(pts: np.ndarray, a: np.ndarray, b: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """(I,) number of points (N, 3) within ``r`` (I,) of each segment a-b (I, 3)."""
+    d = b - a
+    dd = np.maximum((d * d).sum(1), 1e-12)
+    pd, pa = pts @ d.T, pts @ a.T  # (N, I)
+    ad, aa = (a * d).sum(1), (a * a).sum(1)
+    t = np.clip((pd - ad) / dd, 0.0, 1.0)
+    d2 = (pts * pts).sum(1)[:, None] - 2 * (pa + t * pd) + aa + 2 * t * ad + t * t * dd
+    return (d2 <= r * r).sum(0)
+
+
+def _where(towards: int) -> str:
+    return ("on the free move to the start pose (waypoint 0)" if towards == 0
+            else f"on the move to waypoint {towards}")
+
+
+def _arm_refusal(c: int, cloud: np.ndarray | None, contact: np.ndarray, q: np.ndarray,
+                 towards: np.ndarray, base: np.ndarray, check: ArmCheck, contact_radius: float,
+                 max_points: int) -> Refusal | None:
+    """The first collision of candidate ``c``'s joint path ``q`` (P, 7) with the cloud (its
+    points within ``contact_radius`` of the contact left out: the surface the fingers touch)
+    or the table plane, None when there is none."""
+    from w2e_ros.core import kinematics as kin
+
+    ends, hand, to = _sweep(q, towards, base)  # (S, K, 2, 3), (S, 4, 4), (S,)
+    S, K = ends.shape[:2]
+    radii = np.array([cap[3] for cap in kin.CAPSULES]) + check.arm_margin  # (K,)
+    names = [cap[0] for cap in kin.CAPSULES]
+    first: tuple[int, int, str, str] | None = None  # (sample, order, part, reason)
+    if cloud is not None and len(cloud):
+        pts = cloud[((cloud - contact) ** 2).sum(1) > contact_radius ** 2]
+        if len(pts):
+            lo, hi = pts.min(0), pts.max(0)
+            clo = np.minimum(ends[:, :, 0], ends[:, :, 1]) - radii[:, None]  # (S, K, 3)
+            chi = np.maximum(ends[:, :, 0], ends[:, :, 1]) + radii[:, None]
+            near = np.flatnonzero(((clo <= hi) & (chi >= lo)).all(-1).ravel())  # s * K + k
+            for s0 in range(0, len(near), 2048):
+                part = near[s0:s0 + 2048]
+                e = ends.reshape(S * K, 2, 3)[part]
+                cnt = _segment_hits(pts, e[:, 0], e[:, 1], radii[part % K])
+                bad = np.flatnonzero(cnt > max_points)
+                if len(bad):
+                    i = int(part[bad[0]])
+                    s, k = divmod(i, K)
+                    first = (s, 0, names[k], f"{names[k]} runs into {int(cnt[bad[0]])} "
+                             f"observed point(s) {_where(int(to[s]))}")
+                    break
+    plane = float(base[2, 3]) + check.table_height
+    # lowest point of each bare capsule (S, K); the base, bolted to the table, is not checked
+    low = np.minimum(ends[:, :, 0, 2], ends[:, :, 1, 2]) - (radii - check.arm_margin)
+    low[:, [k for k, n in enumerate(names) if n in FIXED_LINKS]] = np.inf
+    lo_hand, hi_hand = hand_boxes(FINGER_MAX)
+    corners = np.array([[x, y, z] for lo, hi in zip(lo_hand, hi_hand, strict=True)
+                        for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    hand_z = (np.einsum("sj,cj->sc", hand[:, 2, :3], corners) + hand[:, 2, 3:4]).min(1)  # (S,)
+    below = np.flatnonzero((low.min(1) < plane + check.arm_margin) | (hand_z < plane))
+    if len(below) and (first is None or below[0] < first[0]):
+        s = int(below[0])
+        k = int(np.argmin(low[s]))
+        part, z = ((names[k], low[s, k]) if low[s, k] < plane + check.arm_margin
+                   else ("hand", hand_z[s]))
+        where = (f"goes {100 * (plane - z):.1f} cm below" if z < plane else
+                 f"passes {100 * (z - plane):.1f} cm above, within the "
+                 f"{100 * check.arm_margin:.1f} cm margin of,")
+        first = (s, 1, part, f"{part} {where} the table plane (z = {plane:.3f}) "
+                 f"{_where(int(to[s]))}")
+    if first is None:
+        return None
+    s, order, part, reason = first
+    return Refusal(c, "arm" if order == 0 else "table", part, int(to[s]), reason)
+
+
+def arm_collisions(cloud: np.ndarray | None, point: np.ndarray, up: np.ndarray,
+                   forward: np.ndarray, primitive: str, arm: Arm,
+                   check: ArmCheck = DEFAULT_ARM_CHECK, approach: ApproachCheck = DEFAULT_CHECK
+                   ) -> list[Refusal | None]:
+    """Per candidate (C, 3 points and frames, the cloud's frame), why the Panda ``arm`` cannot
+    execute it along the joint trajectory the planner would send, None when it can: ``reach``
+    (:func:`w2e_ros.core.kinematics.joint_paths`: no IK path within the limits and the box),
+    ``arm`` (a link's capsule, grown by ``check.arm_margin``, holds more than
+    ``approach.max_points`` observed points at some sample of the path, the points within
+    ``approach.contact_radius`` of the contact left out as in the hand's check), or
+    ``table`` (a link other than the base goes below the table plane plus the margin, or the
+    hand's boxes, fingers open, below the plane). The first collision along the path is
+    reported. The hand's own approach is :func:`approach_hits`'s (not repeated here)."""
+    from w2e_ros.core import kinematics as kin
+
+    if arm.kind != "panda":
+        raise ValueError(f"the whole-arm check needs a robot model (arm panda), not {arm.kind!r}")
+    point = np.atleast_2d(np.asarray(point, float))
+    base = kin.pose_matrix(arm.base_pose or None)
+    box = kin.WorkspaceBox(tuple(arm.workspace_min), tuple(arm.workspace_max))
+    paths = kin.joint_paths(point, up, forward, primitive, base_pose=base, box=box)
+    towards = _towards(paths.waypoint)
+    cl = None if cloud is None else np.asarray(cloud, float)
+    out: list[Refusal | None] = []
+    for c in range(len(point)):
+        if not paths.ok[c]:
+            out.append(Refusal(c, "reach", "arm", -1, f"out of the {arm.kind} arm's reach"))
+            continue
+        out.append(_arm_refusal(c, cl, point[c], paths.q[c], towards, base, check,
+                                approach.contact_radius, approach.max_points))
+    return out
+
+
+@dataclass(frozen=True)
+class Feasible:
+    """The first candidate (best first) that passes every test (-1: none) and why each one
+    before it was refused (in candidate order)."""
+
+    index: int
+    refusals: tuple[Refusal, ...]
+
+    def counts(self) -> dict[str, int]:
+        """Refused candidates by test: ``blocked`` (the hand's approach), ``unreachable``,
+        ``arm_blocked`` (a link or the hand runs into the cloud or the table)."""
+        tests = [r.test for r in self.refusals]
+        return {"blocked": tests.count("hand"), "unreachable": tests.count("reach"),
+                "arm_blocked": tests.count("arm") + tests.count("table")}
+
+
+def feasible(cloud: np.ndarray | None, point: np.ndarray, up: np.ndarray, forward: np.ndarray,
+             primitive: str, arm: Arm = FLYING, check: ApproachCheck | None = DEFAULT_CHECK,
+             arm_check: ArmCheck | None = None, chunk: int = 32) -> Feasible:
+    """The first candidate (best first) whose hand approach is clear (``check``; None: not
+    checked) and that ``arm`` can execute: reach (IK), and with a robot model (``panda``) and
+    ``arm_check`` (None, or ``check_arm`` false: reach only) the whole arm along its trajectory
+    (:func:`arm_collisions`); the flying hand has no arm to check. The IK (and the arm check)
+    runs on the clear candidates in chunks of ``chunk``, in order, and stops at the first
+    chunk holding one that passes: the best candidates are usually decided after one chunk."""
     point = np.atleast_2d(np.asarray(point, float))
     up, forward = np.atleast_2d(up), np.atleast_2d(forward)
-    clear = (approach_clear(cloud, point, up, forward, primitive, check) if check is not None
-             else np.ones(len(point), bool))
-    stats = {"blocked": int((~clear).sum()), "unreachable": 0}
-    idx = np.flatnonzero(clear)
+    if check is not None:
+        hits = np.asarray(approach_hits(cloud, point, up, forward, primitive, check))
+        clear = hits <= check.max_points
+    else:
+        hits, clear = np.zeros(len(point), int), np.ones(len(point), bool)
+    refusals = [Refusal(int(c), "hand", "hand", -1, f"the hand's approach runs into "
+                        f"{int(hits[c])} observed point(s)") for c in np.flatnonzero(~clear)]
+    whole = arm.kind == "panda" and arm_check is not None and arm_check.check_arm
+    idx, found = np.flatnonzero(clear), -1
     for s in range(0, len(idx), chunk):
         part = idx[s:s + chunk]
-        ok = arm_reachable(point[part], up[part], forward[part], primitive, arm)
-        if ok.any():
-            k = int(np.argmax(ok))
-            stats["unreachable"] += k
-            stats["blocked"] = int((~clear[:part[k]]).sum())
-            return int(part[k]), stats
-        stats["unreachable"] += len(part)
-    return -1, stats
+        if whole:
+            why = arm_collisions(cloud, point[part], up[part], forward[part], primitive, arm,
+                                 arm_check, check or DEFAULT_CHECK)
+        else:
+            ok = arm_reachable(point[part], up[part], forward[part], primitive, arm)
+            why = [None if o else Refusal(0, "reach", "arm", -1,
+                                          f"out of the {arm.kind} arm's reach") for o in ok]
+        for c, w in zip(part, why, strict=True):
+            if w is None:
+                found = int(c)
+                break
+            refusals.append(dataclasses.replace(w, candidate=int(c)))
+        if found >= 0:
+            break
+    kept = sorted((r for r in refusals if found < 0 or r.candidate < found),
+                  key=lambda r: r.candidate)
+    return Feasible(found, tuple(kept))

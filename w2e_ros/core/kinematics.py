@@ -151,6 +151,56 @@ def fk(q: np.ndarray) -> np.ndarray:
     return T[0] if single else T
 
 
+LINKS: tuple[str, ...] = (*(f"panda_link{i}" for i in range(8)), "panda_hand")
+"""The arm's bodies in the order of :func:`link_poses`: the base, the 7 moving links, the hand
+(the fingers are the contract's boxes, :mod:`w2e_ros.core.primitives`)."""
+
+
+def link_poses(q: np.ndarray) -> np.ndarray:
+    """(B, 9, 4, 4) poses of :data:`LINKS` in the base frame for joints (B, 7) (the URDF's
+    link frames are the modified-DH joint frames)."""
+    q = np.atleast_2d(np.asarray(q, float))
+    frames, hand = _chain(q)
+    return np.concatenate([np.broadcast_to(np.eye(4), (len(q), 1, 4, 4)), frames,
+                           hand[:, None]], axis=1)
+
+
+CAPSULES: tuple[tuple[str, tuple[float, float, float], tuple[float, float, float], float],
+                ...] = (
+    # link, segment ends in the link's frame (m), radius (m)
+    ("panda_link0", (-0.025, -0.000, 0.057), (-0.059, -0.002, 0.043), 0.114),
+    ("panda_link1", (-0.000, -0.005, -0.146), (0.001, -0.056, -0.002), 0.079),
+    ("panda_link2", (0.000, -0.147, -0.002), (-0.001, -0.002, 0.056), 0.079),
+    ("panda_link3", (-0.003, 0.001, -0.085), (0.082, 0.045, -0.005), 0.074),
+    ("panda_link4", (0.002, -0.001, 0.047), (-0.089, 0.091, -0.003), 0.072),
+    ("panda_link5", (-0.001, 0.074, 0.006), (-0.000, 0.009, -0.223), 0.074),
+    ("panda_link6", (0.093, -0.024, 0.003), (-0.008, -0.014, 0.011), 0.054),
+    ("panda_link6", (0.073, 0.033, 0.002), (0.014, 0.023, 0.017), 0.064),
+    ("panda_link7", (0.033, 0.032, 0.083), (-0.008, -0.007, 0.078), 0.051),
+    ("panda_hand", (0.000, -0.077, 0.045), (0.000, 0.075, 0.045), 0.034),
+    ("panda_hand", (-0.001, 0.074, 0.005), (0.000, -0.078, -0.002), 0.035),
+)
+"""The arm's volume as capsules: each encloses the collision mesh of its link in
+franka_description's Panda (meshes/collision/*.stl of the example-robot-data package, the
+simulated arm's own collision shapes). Fitted once (the smallest-volume capsule along a
+coordinate axis or the principal axis, the radius the largest distance of 3000 points sampled
+evenly on the mesh's surface); ``test_kinematics`` samples the meshes again and checks every
+point is inside. One capsule per link over-covers an elbow by 1-2 cm (the links' casings are
+~6 cm in radius, the capsules 7-8 cm; the base's 11 cm); the check's margin comes on top.
+The fingers are not here: the approach check sweeps the contract's finger boxes."""
+
+
+def capsules(q: np.ndarray, base_pose=None) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:
+    """The arm's capsules at joints ``q`` (B, 7) for a base at ``base_pose`` (world frame):
+    segment ends (B, K, 2, 3) in the world, radii (K,) and the link of each (K,)."""
+    T = pose_matrix(base_pose) @ link_poses(q)  # (B, 9, 4, 4)
+    li = np.array([LINKS.index(c[0]) for c in CAPSULES])
+    ends = np.array([[c[1], c[2]] for c in CAPSULES])  # (K, 2, 3) link frame
+    Tk = T[:, li]  # (B, K, 4, 4)
+    world = np.einsum("bkij,kej->bkei", Tk[..., :3, :3], ends) + Tk[:, :, None, :3, 3]
+    return world, np.array([c[3] for c in CAPSULES]), tuple(c[0] for c in CAPSULES)
+
+
 def jacobian(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Geometric Jacobian (B, 6, 7) of the wrist (linear rows first) and the wrist (B, 4, 4)."""
     frames, T = _chain(np.atleast_2d(np.asarray(q, float)))
@@ -429,26 +479,65 @@ def primitive_waypoints(point: np.ndarray, up: np.ndarray, forward: np.ndarray,
     return W, acts
 
 
+@dataclass
+class CandidatePaths:
+    """The joint trajectories the planner would send for C candidate actions (one batch)."""
+
+    ok: np.ndarray  # (C,) the arm can follow the candidate's waypoints
+    q: np.ndarray  # (C, P, 7) the start joints, then every planned point (meaningless where
+    #               not ok): point 0 -> 1 is the free move to the start pose (waypoint 0)
+    waypoint: np.ndarray  # (P,) index of the waypoint a point reaches, -1 in between (and at
+    #                      the start joints), as :attr:`JointPlan.waypoint`
+
+
+def joint_paths(point: np.ndarray, up: np.ndarray, forward: np.ndarray, primitive: str,
+                base_pose=None, limits: ArmLimits = DEFAULT_LIMITS, box: WorkspaceBox = DEFAULT_BOX,
+                settings: PlanSettings = DEFAULT_PLAN, restarts: int | None = None,
+                q_start: np.ndarray | None = None) -> CandidatePaths:
+    """:func:`plan_trajectory` for C actions in one batch: which the arm can follow and the
+    joint path of each, the one :func:`plan_trajectory` returns (the same seeds, the hand as
+    given, else turned half a turn; among the seeds that made it, the start solution nearest
+    ``q_start``, default :data:`Q_READY`). ``restarts``: None, the plan's seeds; a number,
+    the ready pose and that many random seeds only (cheaper, for the reach alone: most
+    candidates of an object share their answer, but the path can be another IK branch than
+    the plan's)."""
+    W, _ = primitive_waypoints(point, up, forward, primitive)
+    q0 = Q_READY if q_start is None else np.asarray(q_start, float)
+    local = np.linalg.inv(pose_matrix(base_pose)) @ W  # (C, K, 4, 4)
+    ok = box.contains(local[..., :3, 3]).all(axis=1)
+    ok &= (np.linalg.norm(local[..., :3, 3] - [0.0, 0.0, DH_D[0]], axis=2) <= REACH).all(axis=1)
+    _, idx = _densify(local[0], settings.max_step)  # the same pieces for every candidate
+    waypoint = np.concatenate([[-1], idx])
+    paths = np.zeros((len(W), len(waypoint), 7))
+    paths[:, 0] = q0
+    live = np.flatnonzero(ok)
+    if len(live) == 0:
+        return CandidatePaths(ok, paths, waypoint)
+    dense = np.stack([_densify(local[c], settings.max_step)[0] for c in live])
+    flips = 2 if settings.symmetric_hand else 1
+    if flips == 2:
+        dense = np.concatenate([dense, dense @ FLIP])
+    if restarts is None:
+        seeds = _seeds(q0, limits, settings)
+    else:
+        rng = np.random.default_rng(settings.seed)
+        seeds = np.concatenate([Q_READY[None], random_configurations(restarts, rng, limits)])
+    q, good, _ = _follow(dense, seeds, limits, settings)  # (F*L, S, M, 7), (F*L, S)
+    L = len(live)
+    q, good = q.reshape(flips, L, *q.shape[1:]), good.reshape(flips, L, -1)
+    f = np.where(good[0].any(axis=1), 0, flips - 1)  # (L,) the hand as given, else flipped
+    q, good = q[f, np.arange(L)], good[f, np.arange(L)]  # (L, S, M, 7), (L, S)
+    dist = np.where(good, np.abs(q[:, :, 0] - q0).max(axis=2), np.inf)  # (L, S)
+    s = np.argmin(dist, axis=1)
+    ok[live] = good.any(axis=1)
+    paths[live, 1:] = q[np.arange(L), s]
+    return CandidatePaths(ok, paths, waypoint)
+
+
 def reachable(point: np.ndarray, up: np.ndarray, forward: np.ndarray, primitive: str,
               base_pose=None, limits: ArmLimits = DEFAULT_LIMITS, box: WorkspaceBox = DEFAULT_BOX,
               settings: PlanSettings = DEFAULT_PLAN, restarts: int = 2) -> np.ndarray:
     """(C,) bool: the arm based at ``base_pose`` can follow each candidate action's waypoints
-    (:func:`plan_trajectory`'s test, for C actions in one batch; ``restarts`` random seeds
-    besides the ready pose, fewer than a single plan's since most candidates of an object
-    share their answer)."""
-    W, _ = primitive_waypoints(point, up, forward, primitive)
-    local = np.linalg.inv(pose_matrix(base_pose)) @ W  # (C, K, 4, 4)
-    ok = box.contains(local[..., :3, 3]).all(axis=1)
-    ok &= (np.linalg.norm(local[..., :3, 3] - [0.0, 0.0, DH_D[0]], axis=2) <= REACH).all(axis=1)
-    live = np.flatnonzero(ok)
-    if len(live) == 0:
-        return ok
-    dense = np.stack([_densify(local[c], settings.max_step)[0] for c in live])
-    if settings.symmetric_hand:
-        dense = np.concatenate([dense, dense @ FLIP])
-    rng = np.random.default_rng(settings.seed)
-    seeds = np.concatenate([Q_READY[None], random_configurations(restarts, rng, limits)])
-    _, good, _ = _follow(dense, seeds, limits, settings)
-    good = good.any(axis=1)
-    ok[live] = good[:len(live)] | good[len(live):] if settings.symmetric_hand else good
-    return ok
+    (:func:`joint_paths`: :func:`plan_trajectory`'s test, for C actions in one batch)."""
+    return joint_paths(point, up, forward, primitive, base_pose, limits, box, settings,
+                       restarts).ok

@@ -24,7 +24,16 @@ import numpy as np
 import torch
 
 from w2e_ros.core.actions import encode_rotation
-from w2e_ros.core.feasibility import DEFAULT_CHECK, FLYING, ApproachCheck, Arm, first_feasible
+from w2e_ros.core.feasibility import (
+    DEFAULT_ARM_CHECK,
+    DEFAULT_CHECK,
+    FLYING,
+    ApproachCheck,
+    Arm,
+    ArmCheck,
+    Refusal,
+    feasible,
+)
 from w2e_ros.core.model import W2EModel
 
 
@@ -72,16 +81,28 @@ class Choice:
     considered: int  # candidates looked at
     blocked: int = 0  # whose approach runs into the observed cloud
     unreachable: int = 0  # clear, but out of the arm's reach
+    arm_blocked: int = 0  # reachable, but a link or the hand hits the cloud or the table
+    refusals: tuple[Refusal, ...] = ()  # per skipped candidate: test, part, waypoint, reason
 
 
 @dataclass(frozen=True)
 class ManipulatePolicy:
     """Execute the best candidate whose approach is clear (``check``; None: not checked) and
-    that ``arm`` can follow, among the ``candidates`` best."""
+    that ``arm`` can follow, among the ``candidates`` best; with a robot model (arm
+    ``panda``) and ``arm_check.check_arm``, only where the arm's links along the planned
+    trajectory miss the observed cloud and the arm and the hand stay above the table
+    (:func:`w2e_ros.core.feasibility.arm_collisions`; the flying hand: the hand's approach
+    only)."""
 
     check: ApproachCheck | None = DEFAULT_CHECK
     arm: Arm = FLYING
     candidates: int = 256
+    arm_check: ArmCheck = DEFAULT_ARM_CHECK
+
+    @property
+    def whole_arm(self) -> bool:
+        """Whether the whole arm is checked (a robot model and ``check_arm``)."""
+        return self.arm.kind == "panda" and self.arm_check.check_arm
 
     @property
     def checks(self) -> bool:
@@ -100,8 +121,9 @@ class ManipulatePolicy:
         n = len(point)
         if not self.checks or n == 0:
             return Choice(0 if n else -1, n)
-        k, refused = first_feasible(cloud, point, up, forward, primitive, self.arm, self.check)
-        return Choice(k, n, refused["blocked"], refused["unreachable"])
+        f = feasible(cloud, point, up, forward, primitive, self.arm, self.check, self.arm_check)
+        c = f.counts()
+        return Choice(f.index, n, c["blocked"], c["unreachable"], c["arm_blocked"], f.refusals)
 
     def pick(self, scores: np.ndarray, cloud: np.ndarray, point_index: np.ndarray,
              up: np.ndarray, forward: np.ndarray, primitive: str,
@@ -116,10 +138,15 @@ class ManipulatePolicy:
         """Why nothing is executed when none of ``considered`` candidates passes."""
         return (f"not executed: each of the {considered} best actions " + (
             "runs into the object's observed cloud on its approach" if self.arm.kind == "flying"
+            else f"runs into the observed cloud, is out of the {self.arm.kind} arm's reach or "
+            "takes the arm into the cloud or the table" if self.whole_arm
             else f"runs into the observed cloud or is out of the {self.arm.kind} arm's reach"))
 
     def skipped(self, c: Choice) -> str:
         """What was skipped before the chosen candidate (for the log)."""
+        arm = (f", {c.arm_blocked} take the arm into the cloud or the table"
+               + (f" (first: {next(r.reason for r in c.refusals if r.test in ('arm', 'table'))})"
+                  if c.arm_blocked else "") if self.whole_arm else "")
         return (f"of the {c.index} best action(s), {c.blocked} run into the object on their "
-                f"approach and {c.unreachable} are out of the {self.arm.kind} arm's reach; "
+                f"approach, {c.unreachable} are out of the {self.arm.kind} arm's reach{arm}; "
                 f"executing number {c.index + 1}")

@@ -59,7 +59,7 @@ from w2e_msgs.srv import Explore, LoadScene, Manipulate, PredictMaps, UpdateMode
 
 from w2e_ros.core.categories import load_categories
 from w2e_ros.core.config import ExploreConfig
-from w2e_ros.core.feasibility import DEFAULT_CHECK, Arm
+from w2e_ros.core.feasibility import DEFAULT_CHECK, Arm, ArmCheck
 from w2e_ros.core.kinematics import BASE_POSE_DESCRIPTION, DEFAULT_BASE_POSE
 from w2e_ros.core.policy import ManipulatePolicy
 from w2e_ros.core.strategies import get_strategy
@@ -116,6 +116,9 @@ class PlannerSettings:
                                            "box the wrist must stay in (base frame, m)")
     arm_workspace_max: list[float] = param([0.9, 0.9, 1.2], "arm panda: high corner of the "
                                            "box the wrist must stay in (base frame, m)")
+    check_arm: bool = setting_param(ArmCheck, "check_arm")
+    arm_margin: float = setting_param(ArmCheck, "arm_margin", min=0.0)
+    table_height: float = setting_param(ArmCheck, "table_height")
     service_timeout_s: float = param(120.0, "longest wait for predict_maps / update_model",
                                      min=0.1)
     execute_timeout_s: float = param(60.0, "longest wait for one executed interaction",
@@ -163,7 +166,8 @@ class PlannerNode(Node):
         self.arm = Arm(s.arm, tuple(s.arm_base_pose), tuple(s.arm_workspace_min),
                        tuple(s.arm_workspace_max))  # ValueError names a wrong value
         self.policy = ManipulatePolicy(DEFAULT_CHECK if s.check_approach else None, self.arm,
-                                       s.approach_candidates)
+                                       s.approach_candidates,
+                                       ArmCheck(s.check_arm, s.arm_margin, s.table_height))
         self.scope = state_scope(self, s.state_scope)
         self.log_dir = scoped_dir(s.exploration_log_dir or default_log_dir(), self.scope)
         self.get_logger().info(f"exploration sessions in {self.log_dir}")
