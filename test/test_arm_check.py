@@ -144,7 +144,7 @@ def _stl_surface(path, n: int, rng: np.random.Generator) -> np.ndarray:
     return T[i, 0] + u[:, None] * (T[i, 1] - T[i, 0]) + v[:, None] * (T[i, 2] - T[i, 0])
 
 
-def test_the_capsules_enclose_the_panda_collision_meshes():
+def test_the_capsules_and_the_hand_box_enclose_the_panda_collision_meshes():
     pytest.importorskip("sapien")  # sim_bridge.panda needs it to name the URDF's place
     from sim_bridge.panda import panda_urdf
 
@@ -152,6 +152,10 @@ def test_the_capsules_enclose_the_panda_collision_meshes():
     rng = np.random.default_rng(1)
     for link in kin.LINKS:
         pts = _stl_surface(meshes / f"{link.removeprefix('panda_')}.stl", 4000, rng)
+        if link == "panda_hand":  # a box, not capsules
+            lo, hi = np.array(kin.HAND_BOX[0]), np.array(kin.HAND_BOX[1])
+            assert ((pts >= lo - 1e-4) & (pts <= hi + 1e-4)).all()
+            continue
         caps = [c for c in kin.CAPSULES if c[0] == link]
         assert caps, link
         gap = np.full(len(pts), np.inf)

@@ -469,6 +469,67 @@ def _where(towards: int) -> str:
             else f"on the move to waypoint {towards}")
 
 
+def _box_corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """(8 B, 3) corners of boxes (B, 3) low and high."""
+    return np.array([[x, y, z] for a, b in zip(np.atleast_2d(lo), np.atleast_2d(hi), strict=True)
+                     for x in (a[0], b[0]) for y in (a[1], b[1]) for z in (a[2], b[2])])
+
+
+def _cloud_hit(pts: np.ndarray, ends: np.ndarray, hand: np.ndarray, radii: np.ndarray,
+               names: list[str], margin: float, max_points: int
+               ) -> tuple[int, str, int] | None:
+    """The first sample at which a capsule (ends (S, K, 2, 3), grown ``radii`` (K,)) or the
+    hand's box (poses (S, 4, 4), grown by ``margin``) holds more than ``max_points`` of
+    ``pts`` (N, 3): (sample, part, points inside), None when none does."""
+    from w2e_ros.core import kinematics as kin
+
+    S, K = ends.shape[:2]
+    first: tuple[int, str, int] | None = None
+    lo, hi = pts.min(0), pts.max(0)
+    clo = np.minimum(ends[:, :, 0], ends[:, :, 1]) - radii[:, None]  # (S, K, 3)
+    chi = np.maximum(ends[:, :, 0], ends[:, :, 1]) + radii[:, None]
+    near = np.flatnonzero(((clo <= hi) & (chi >= lo)).all(-1).ravel())  # s * K + k, in order
+    for s0 in range(0, len(near), 2048):
+        part = near[s0:s0 + 2048]
+        e = ends.reshape(S * K, 2, 3)[part]
+        cnt = _segment_hits(pts, e[:, 0], e[:, 1], radii[part % K])
+        bad = np.flatnonzero(cnt > max_points)
+        if len(bad):
+            s, k = divmod(int(part[bad[0]]), K)
+            first = (s, names[k], int(cnt[bad[0]]))
+            break
+    hlo, hhi = np.array(kin.HAND_BOX[0]) - margin, np.array(kin.HAND_BOX[1]) + margin
+    for s0 in range(0, S if first is None else first[0], 64):
+        h = hand[s0:s0 + 64]  # (s, 4, 4)
+        local = np.einsum("sji,snj->sni", h[:, :3, :3], pts[None] - h[:, None, :3, 3])
+        cnt = ((local >= hlo) & (local <= hhi)).all(-1).sum(1)  # (s,)
+        bad = np.flatnonzero(cnt > max_points)
+        if len(bad):
+            return s0 + int(bad[0]), "panda_hand", int(cnt[bad[0]])
+    return first
+
+
+def _table_hit(ends: np.ndarray, hand: np.ndarray, radii: np.ndarray, names: list[str],
+               plane: float, margin: float) -> tuple[int, str, float] | None:
+    """The first sample at which a bare capsule other than the base comes within ``margin``
+    of the plane ``z = plane`` (or below), or the hand (its box and the contract's boxes,
+    fingers open) goes below it: (sample, part, the part's lowest z), None when none does."""
+    from w2e_ros.core import kinematics as kin
+
+    low = np.minimum(ends[:, :, 0, 2], ends[:, :, 1, 2]) - radii  # (S, K)
+    low[:, [k for k, n in enumerate(names) if n in FIXED_LINKS]] = np.inf
+    lo, hi = hand_boxes(FINGER_MAX)
+    corners = np.concatenate([_box_corners(lo, hi), _box_corners(*map(np.array, kin.HAND_BOX))])
+    hand_z = (np.einsum("sj,cj->sc", hand[:, 2, :3], corners) + hand[:, 2, 3:4]).min(1)  # (S,)
+    below = np.flatnonzero((low.min(1) < plane + margin) | (hand_z < plane))
+    if not len(below):
+        return None
+    s = int(below[0])
+    k = int(np.argmin(low[s]))
+    return (s, names[k], float(low[s, k])) if low[s, k] < plane + margin else \
+        (s, "hand", float(hand_z[s]))
+
+
 def _arm_refusal(c: int, cloud: np.ndarray | None, contact: np.ndarray, q: np.ndarray,
                  towards: np.ndarray, base: np.ndarray, check: ArmCheck, contact_radius: float,
                  max_points: int) -> Refusal | None:
@@ -478,51 +539,28 @@ def _arm_refusal(c: int, cloud: np.ndarray | None, contact: np.ndarray, q: np.nd
     from w2e_ros.core import kinematics as kin
 
     ends, hand, to = _sweep(q, towards, base)  # (S, K, 2, 3), (S, 4, 4), (S,)
-    S, K = ends.shape[:2]
-    radii = np.array([cap[3] for cap in kin.CAPSULES]) + check.arm_margin  # (K,)
+    radii = np.array([cap[3] for cap in kin.CAPSULES])  # (K,)
     names = [cap[0] for cap in kin.CAPSULES]
-    first: tuple[int, int, str, str] | None = None  # (sample, order, part, reason)
+    hit = None
     if cloud is not None and len(cloud):
         pts = cloud[((cloud - contact) ** 2).sum(1) > contact_radius ** 2]
         if len(pts):
-            lo, hi = pts.min(0), pts.max(0)
-            clo = np.minimum(ends[:, :, 0], ends[:, :, 1]) - radii[:, None]  # (S, K, 3)
-            chi = np.maximum(ends[:, :, 0], ends[:, :, 1]) + radii[:, None]
-            near = np.flatnonzero(((clo <= hi) & (chi >= lo)).all(-1).ravel())  # s * K + k
-            for s0 in range(0, len(near), 2048):
-                part = near[s0:s0 + 2048]
-                e = ends.reshape(S * K, 2, 3)[part]
-                cnt = _segment_hits(pts, e[:, 0], e[:, 1], radii[part % K])
-                bad = np.flatnonzero(cnt > max_points)
-                if len(bad):
-                    i = int(part[bad[0]])
-                    s, k = divmod(i, K)
-                    first = (s, 0, names[k], f"{names[k]} runs into {int(cnt[bad[0]])} "
-                             f"observed point(s) {_where(int(to[s]))}")
-                    break
+            hit = _cloud_hit(pts, ends, hand, radii + check.arm_margin, names,
+                             check.arm_margin, max_points)
     plane = float(base[2, 3]) + check.table_height
-    # lowest point of each bare capsule (S, K); the base, bolted to the table, is not checked
-    low = np.minimum(ends[:, :, 0, 2], ends[:, :, 1, 2]) - (radii - check.arm_margin)
-    low[:, [k for k, n in enumerate(names) if n in FIXED_LINKS]] = np.inf
-    lo_hand, hi_hand = hand_boxes(FINGER_MAX)
-    corners = np.array([[x, y, z] for lo, hi in zip(lo_hand, hi_hand, strict=True)
-                        for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-    hand_z = (np.einsum("sj,cj->sc", hand[:, 2, :3], corners) + hand[:, 2, 3:4]).min(1)  # (S,)
-    below = np.flatnonzero((low.min(1) < plane + check.arm_margin) | (hand_z < plane))
-    if len(below) and (first is None or below[0] < first[0]):
-        s = int(below[0])
-        k = int(np.argmin(low[s]))
-        part, z = ((names[k], low[s, k]) if low[s, k] < plane + check.arm_margin
-                   else ("hand", hand_z[s]))
+    low = _table_hit(ends, hand, radii, names, plane, check.arm_margin)
+    if low is not None and (hit is None or low[0] < hit[0]):
+        s, part, z = low
         where = (f"goes {100 * (plane - z):.1f} cm below" if z < plane else
                  f"passes {100 * (z - plane):.1f} cm above, within the "
                  f"{100 * check.arm_margin:.1f} cm margin of,")
-        first = (s, 1, part, f"{part} {where} the table plane (z = {plane:.3f}) "
-                 f"{_where(int(to[s]))}")
-    if first is None:
-        return None
-    s, order, part, reason = first
-    return Refusal(c, "arm" if order == 0 else "table", part, int(to[s]), reason)
+        return Refusal(c, "table", part, int(to[s]), f"{part} {where} the table plane "
+                       f"(z = {plane:.3f}) {_where(int(to[s]))}")
+    if hit is not None:
+        s, part, n = hit
+        return Refusal(c, "arm", part, int(to[s]), f"{part} runs into {n} observed point(s) "
+                       f"{_where(int(to[s]))}")
+    return None
 
 
 def arm_collisions(cloud: np.ndarray | None, point: np.ndarray, up: np.ndarray,

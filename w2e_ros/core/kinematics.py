@@ -177,8 +177,6 @@ CAPSULES: tuple[tuple[str, tuple[float, float, float], tuple[float, float, float
     ("panda_link6", (0.093, -0.024, 0.003), (-0.008, -0.014, 0.011), 0.054),
     ("panda_link6", (0.073, 0.033, 0.002), (0.014, 0.023, 0.017), 0.064),
     ("panda_link7", (0.033, 0.032, 0.083), (-0.008, -0.007, 0.078), 0.051),
-    ("panda_hand", (0.000, -0.077, 0.045), (0.000, 0.075, 0.045), 0.034),
-    ("panda_hand", (-0.001, 0.074, 0.005), (0.000, -0.078, -0.002), 0.035),
 )
 """The arm's volume as capsules: each encloses the collision mesh of its link in
 franka_description's Panda (meshes/collision/*.stl of the example-robot-data package, the
@@ -187,7 +185,14 @@ coordinate axis or the principal axis, the radius the largest distance of 3000 p
 evenly on the mesh's surface); ``test_kinematics`` samples the meshes again and checks every
 point is inside. One capsule per link over-covers an elbow by 1-2 cm (the links' casings are
 ~6 cm in radius, the capsules 7-8 cm; the base's 11 cm); the check's margin comes on top.
-The fingers are not here: the approach check sweeps the contract's finger boxes."""
+The hand is :data:`HAND_BOX` (a box fits it far closer than capsules: they reach 2 cm
+further towards the fingers); the fingers are the contract's boxes, which the approach check
+sweeps."""
+
+HAND_BOX: tuple[tuple[float, float, float], tuple[float, float, float]] = (
+    (-0.032, -0.104, -0.026), (0.032, 0.101, 0.066))
+"""Low and high corners (m, the panda_hand frame) of the box around the hand's collision mesh
+(meshes/collision/hand.stl, as :data:`CAPSULES`), fingers not included."""
 
 
 def capsules(q: np.ndarray, base_pose=None) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:
