@@ -209,6 +209,10 @@ class ArmSettings:
     plan: kin.PlanSettings = field(default_factory=kin.PlanSettings)
     limits: kin.ArmLimits = field(default_factory=kin.ArmLimits)
     box: kin.WorkspaceBox = field(default_factory=kin.WorkspaceBox)
+    # True: the free move from the ready pose to the start pose is simulated too, and a touch
+    # on it makes the trial invalid (a real arm makes that move; off: the arm appears at the
+    # start pose, as the flying gripper does)
+    free_move: bool = False
 
 
 @dataclass
@@ -251,9 +255,10 @@ def run_arm_trial(world: ObjectWorld, qpos: np.ndarray, action: Action, base_pos
     The wrist waypoints are the executor's (start pose, schedule); the whole motion is
     planned first and an unreachable one is reported with nothing moved. The arm is put at
     the plan's start pose (the flying gripper appears at its start pose too: the free move
-    from the ready pose has no collision check and is not simulated), the contract's checks
-    apply (contact at the first step; a push touching another part), then the plan runs on
-    the drives and the same success rule judges the objects' motion."""
+    from the ready pose is not simulated; with ``settings.free_move`` it is, from the ready
+    pose, and a touch on it makes the trial invalid), the contract's checks apply (contact
+    at the first step; a push touching another part), then the plan runs on the drives and
+    the same success rule judges the objects' motion."""
     s = settings or ArmSettings()
     qpos = np.asarray(qpos, float)
     W, acts = kin.primitive_waypoints(action.point, action.up, action.forward, action.primitive)
@@ -269,15 +274,17 @@ def run_arm_trial(world: ObjectWorld, qpos: np.ndarray, action: Action, base_pos
     local_point = transform_points(np.linalg.inv(sapien_to_pose(target_comp.entity_pose)),
                                    point[None])[0]
     fingers = finger_targets(action.primitive, plan)
-    panda = build_panda(scene, base_pose, plan.positions[1], fingers[1])
+    first = 0 if s.free_move else 1  # the plan's point the arm starts at
+    panda = build_panda(scene, base_pose, plan.positions[first], fingers[first])
     touches = world.touch_probe(scene, ROBOT_PREFIX)
-    # from the start pose (point 1) to the end, timed as planned
-    follow = TrajectoryFollower(plan.positions[1], plan.times[2:] - plan.times[1],
-                                plan.positions[2:])
-    ftimes = plan.times[1:] - plan.times[1]
-    fvals = fingers[1:]
+    # from the ready pose (point 0) or the start pose (point 1) to the end, timed as planned
+    follow = TrajectoryFollower(plan.positions[first], plan.times[first + 1:]
+                                - plan.times[first], plan.positions[first + 1:])
+    ftimes = plan.times[first:] - plan.times[first]
+    fvals = fingers[first:]
     scene.step()
     reason = "contact at first step" if touches() else ""
+    arrive = ftimes[1 - first]  # when the arm reaches the start pose
     pushing = action.primitive.startswith("push")
     n = int(np.ceil(follow.duration / s.timestep))
     err, werr, k = 0.0, 0.0, 1
@@ -294,10 +301,13 @@ def run_arm_trial(world: ObjectWorld, qpos: np.ndarray, action: Action, base_pos
             panda.set_targets(q, dq, f)
             scene.step()
             while k < len(ftimes) and t >= ftimes[k] - 1e-9:  # passed a planned point
-                err = max(err, float(np.abs(panda.q() - plan.positions[k + 1]).max()))
+                err = max(err, float(np.abs(panda.q() - plan.positions[k + first]).max()))
                 werr = max(werr, float(np.linalg.norm(panda.hand_pose()[:3, 3]
-                                                      - plan.wrist[k + 1][:3, 3])))
+                                                      - plan.wrist[k + first][:3, 3])))
                 k += 1
+            if t <= arrive + 1e-9 and touches():
+                reason = "contact on the free move to the start pose"
+                break
             if pushing and touches() - {(obj_id, link_id)}:
                 reason = "push touched a non-target part"
                 break

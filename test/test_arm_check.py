@@ -58,6 +58,8 @@ def test_a_clear_candidate_is_accepted():
     point = np.array([0.6, 0.0, 0.5])
     cloud = drawer_front(point)
     assert arm_collisions(cloud, point, UP, FWD, "pull", PANDA) == [None]
+    assert arm_collisions(cloud, np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), "pull",
+                          PANDA) == []
     assert feasible(cloud, point, UP, FWD, "pull", PANDA, arm_check=DEFAULT_ARM_CHECK).index == 0
 
 
@@ -164,3 +166,31 @@ def test_the_capsules_and_the_hand_box_enclose_the_panda_collision_meshes():
             t = np.clip((pts - a) @ (b - a) / ((b - a) @ (b - a)), 0, 1)
             gap = np.minimum(gap, np.linalg.norm(pts - (a + t[:, None] * (b - a)), axis=1) - r)
         assert gap.max() < 0.002, f"{link}: a mesh point {1000 * gap.max():.1f} mm outside"
+
+
+def test_the_simulated_panda_can_make_the_free_move_from_the_ready_pose():
+    pytest.importorskip("sapien")
+    from sim_bridge import panda as sim_panda
+    from sim_bridge.objects import make_object
+    from sim_bridge.world import ObjectWorld
+    from w2e_ros.core.primitives import Action
+
+    for instance in range(50):  # the first cabinet with a drawer
+        model = make_object("cabinet", instance)
+        joint = next((k for k, n in enumerate(model.joint_names) if "drawer" in n), None)
+        if joint is not None:
+            break
+    world = ObjectWorld(model)
+    base = sim_panda.base_in_front(world.center())
+    q = world.joint_limits[:, 0].copy()
+    obs = world.observe(q)
+    pts = obs.points[obs.link_ids == world.models[0].movable_joints[joint].child]
+    point = pts[np.argmax(pts[:, 0])].astype(float)
+    action = Action(point, np.array([-1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]), "pull")
+    at_start = sim_panda.run_arm_trial(world, q, action, base)
+    moved = sim_panda.run_arm_trial(world, q, action, base,
+                                    sim_panda.ArmSettings(free_move=True))
+    assert at_start.result.valid and moved.result.valid, moved.result.reason
+    assert moved.result.success == at_start.result.success
+    assert moved.duration > at_start.duration  # the move from the ready pose was simulated
+    assert moved.wrist_error < 0.01

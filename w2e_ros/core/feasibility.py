@@ -414,13 +414,15 @@ class Refusal:
     part: ``hand`` (its approach runs into the cloud: the hand-only check), ``reach`` (the arm
     cannot follow the waypoints), ``arm`` (a link runs into the cloud), ``table`` (a link or
     the hand goes below the table plane). ``waypoint``: the waypoint the arm was moving to (0:
-    the free move to the start pose), -1: none in particular."""
+    the free move to the start pose), -1: none in particular; ``at_start``: the collision is
+    at the start pose itself, not on the way to it."""
 
     candidate: int
     test: str
     part: str
     waypoint: int
     reason: str
+    at_start: bool = False
 
 
 def _towards(waypoint: np.ndarray) -> np.ndarray:
@@ -464,7 +466,9 @@ def _segment_hits(pts: np.ndarray, a: np.ndarray, b: np.ndarray, r: np.ndarray) 
     return (d2 <= r * r).sum(0)
 
 
-def _where(towards: int) -> str:
+def _where(towards: int, at_start: bool = False) -> str:
+    if at_start:
+        return "at the start pose (waypoint 0)"
     return ("on the free move to the start pose (waypoint 0)" if towards == 0
             else f"on the move to waypoint {towards}")
 
@@ -476,11 +480,12 @@ def _box_corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
 
 
 def _cloud_hit(pts: np.ndarray, ends: np.ndarray, hand: np.ndarray, radii: np.ndarray,
-               names: list[str], margin: float, max_points: int
+               names: list[str], margin: float, max_points: int, hand_until: int
                ) -> tuple[int, str, int] | None:
-    """The first sample at which a capsule (ends (S, K, 2, 3), grown ``radii`` (K,)) or the
-    hand's box (poses (S, 4, 4), grown by ``margin``) holds more than ``max_points`` of
-    ``pts`` (N, 3): (sample, part, points inside), None when none does."""
+    """The first sample at which a capsule (ends (S, K, 2, 3), grown ``radii`` (K,)) or,
+    among the first ``hand_until`` samples, the hand's box or an open finger (poses (S, 4,
+    4), grown by ``margin``) holds more than ``max_points`` of ``pts`` (N, 3): (sample, part, points
+    inside), None when none does."""
     from w2e_ros.core import kinematics as kin
 
     S, K = ends.shape[:2]
@@ -498,11 +503,14 @@ def _cloud_hit(pts: np.ndarray, ends: np.ndarray, hand: np.ndarray, radii: np.nd
             s, k = divmod(int(part[bad[0]]), K)
             first = (s, names[k], int(cnt[bad[0]]))
             break
-    hlo, hhi = np.array(kin.HAND_BOX[0]) - margin, np.array(kin.HAND_BOX[1]) + margin
-    for s0 in range(0, S if first is None else first[0], 64):
-        h = hand[s0:s0 + 64]  # (s, 4, 4)
+    flo, fhi = hand_boxes(FINGER_MAX)  # the fingers, open, beyond the hand's own box
+    hlo = np.concatenate([[kin.HAND_BOX[0]], flo[1:]]) - margin  # (3, 3) hand, two fingers
+    hhi = np.concatenate([[kin.HAND_BOX[1]], fhi[1:]]) + margin
+    for s0 in range(0, min(hand_until, S if first is None else first[0]), 64):
+        h = hand[s0:min(s0 + 64, hand_until)]  # (s, 4, 4)
         local = np.einsum("sji,snj->sni", h[:, :3, :3], pts[None] - h[:, None, :3, 3])
-        cnt = ((local >= hlo) & (local <= hhi)).all(-1).sum(1)  # (s,)
+        inside = ((local[:, :, None] >= hlo) & (local[:, :, None] <= hhi)).all(-1).any(-1)
+        cnt = inside.sum(1)  # (s,) points in the hand or a finger
         bad = np.flatnonzero(cnt > max_points)
         if len(bad):
             return s0 + int(bad[0]), "panda_hand", int(cnt[bad[0]])
@@ -539,14 +547,17 @@ def _arm_refusal(c: int, cloud: np.ndarray | None, contact: np.ndarray, q: np.nd
     from w2e_ros.core import kinematics as kin
 
     ends, hand, to = _sweep(q, towards, base)  # (S, K, 2, 3), (S, 4, 4), (S,)
+    start = int(np.sum(to == 0)) - 1  # the sample at the start pose
     radii = np.array([cap[3] for cap in kin.CAPSULES])  # (K,)
     names = [cap[0] for cap in kin.CAPSULES]
     hit = None
     if cloud is not None and len(cloud):
         pts = cloud[((cloud - contact) ** 2).sum(1) > contact_radius ** 2]
         if len(pts):
+            # the hand up to the start pose: from there on its approach is the hand-only
+            # check's (the contract's boxes), and past the contact it touches the part it acts on
             hit = _cloud_hit(pts, ends, hand, radii + check.arm_margin, names,
-                             check.arm_margin, max_points)
+                             check.arm_margin, max_points, start + 1)
     plane = float(base[2, 3]) + check.table_height
     low = _table_hit(ends, hand, radii, names, plane, check.arm_margin)
     if low is not None and (hit is None or low[0] < hit[0]):
@@ -555,11 +566,11 @@ def _arm_refusal(c: int, cloud: np.ndarray | None, contact: np.ndarray, q: np.nd
                  f"passes {100 * (z - plane):.1f} cm above, within the "
                  f"{100 * check.arm_margin:.1f} cm margin of,")
         return Refusal(c, "table", part, int(to[s]), f"{part} {where} the table plane "
-                       f"(z = {plane:.3f}) {_where(int(to[s]))}")
+                       f"(z = {plane:.3f}) {_where(int(to[s]), s == start)}", s == start)
     if hit is not None:
         s, part, n = hit
         return Refusal(c, "arm", part, int(to[s]), f"{part} runs into {n} observed point(s) "
-                       f"{_where(int(to[s]))}")
+                       f"{_where(int(to[s]), s == start)}", s == start)
     return None
 
 
@@ -572,15 +583,20 @@ def arm_collisions(cloud: np.ndarray | None, point: np.ndarray, up: np.ndarray,
     (:func:`w2e_ros.core.kinematics.joint_paths`: no IK path within the limits and the box),
     ``arm`` (a link's capsule, grown by ``check.arm_margin``, holds more than
     ``approach.max_points`` observed points at some sample of the path, the points within
-    ``approach.contact_radius`` of the contact left out as in the hand's check), or
+    ``approach.contact_radius`` of the contact left out as in the hand's check; the hand's
+    box (:data:`w2e_ros.core.kinematics.HAND_BOX`) and the open fingers (the contract's
+    boxes) likewise on the free move to the start pose), or
     ``table`` (a link other than the base goes below the table plane plus the margin, or the
     hand's boxes, fingers open, below the plane). The first collision along the path is
-    reported. The hand's own approach is :func:`approach_hits`'s (not repeated here)."""
+    reported. The hand's approach from the start pose is :func:`approach_hits`'s (not
+    repeated here)."""
     from w2e_ros.core import kinematics as kin
 
     if arm.kind != "panda":
         raise ValueError(f"the whole-arm check needs a robot model (arm panda), not {arm.kind!r}")
     point = np.atleast_2d(np.asarray(point, float))
+    if point.size == 0:
+        return []
     base = kin.pose_matrix(arm.base_pose or None)
     box = kin.WorkspaceBox(tuple(arm.workspace_min), tuple(arm.workspace_max))
     paths = kin.joint_paths(point, up, forward, primitive, base_pose=base, box=box)
