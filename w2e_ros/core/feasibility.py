@@ -410,12 +410,15 @@ FIXED_LINKS = ("panda_link0",)
 @dataclass(frozen=True)
 class Refusal:
     """Why one candidate is not executed, as :class:`w2e_ros.core.kinematics.Unreachable`
-    says it (a reason and the waypoint), with the candidate, the test that refused it and the
-    part: ``hand`` (its approach runs into the cloud: the hand-only check), ``reach`` (the arm
-    cannot follow the waypoints), ``arm`` (a link runs into the cloud), ``table`` (a link or
-    the hand goes below the table plane). ``waypoint``: the waypoint the arm was moving to (0:
-    the free move to the start pose), -1: none in particular; ``at_start``: the collision is
-    at the start pose itself, not on the way to it."""
+    says it (a reason and the waypoint), with the candidate, the test that refused it
+    (``hand``: its approach runs into the cloud, the hand-only check; ``reach``: the arm
+    cannot follow the waypoints; ``arm``: a link, or the hand and its fingers on the free
+    move, runs into the cloud; ``table``: a link or the hand goes below the table plane) and
+    the part (``hand`` for the hand-only check, ``arm`` for the reach, else a name of
+    :data:`w2e_ros.core.kinematics.LINKS`: ``panda_hand`` is the hand with its fingers).
+    ``waypoint``: the waypoint the arm was moving to (0: the free move to the start pose), -1:
+    none in particular; ``at_start``: the collision is at the start pose itself, not on the
+    way to it."""
 
     candidate: int
     test: str
@@ -535,7 +538,7 @@ def _table_hit(ends: np.ndarray, hand: np.ndarray, radii: np.ndarray, names: lis
     s = int(below[0])
     k = int(np.argmin(low[s]))
     return (s, names[k], float(low[s, k])) if low[s, k] < plane + margin else \
-        (s, "hand", float(hand_z[s]))
+        (s, "panda_hand", float(hand_z[s]))
 
 
 def _arm_refusal(c: int, cloud: np.ndarray | None, contact: np.ndarray, q: np.ndarray,
