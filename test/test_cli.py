@@ -3,6 +3,7 @@ are ExploreConfig's settings, one flag each."""
 
 from __future__ import annotations
 
+import argparse
 import json
 import re
 import shlex
@@ -12,8 +13,15 @@ from pathlib import Path
 import pytest
 
 from w2e_ros import cli
-from w2e_ros.core.config import ExploreConfig, FinetuneConfig
-from w2e_ros.core.settings import flag, leaf_fields
+from w2e_ros.core.config import (
+    NETWORK_FLAGS,
+    ExploreConfig,
+    FinetuneConfig,
+    ModelConfig,
+    TrainConfig,
+)
+from w2e_ros.core.settings import flag, from_namespace, leaf_fields
+from w2e_ros.experiments.config import CollectConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCUMENTS = [ROOT / "README.md", ROOT / "bench" / "REPRODUCE.md",
@@ -132,3 +140,53 @@ def test_results_written_before_the_split_read_back():
     assert ExploreConfig.from_dict(asdict(cfg)) == cfg
     with pytest.raises(ValueError, match="unknown"):
         ExploreConfig.from_dict({"bar": 0.9})
+
+
+def _sub(verb: str) -> argparse.ArgumentParser:
+    return cli.build_parser()._subparsers._group_actions[0].choices[verb]
+
+
+def test_train_and_collect_flags_are_their_settings_one_each():
+    """`w2e train` takes one flag per TrainConfig setting and the network's (NETWORK_FLAGS),
+    `w2e collect` one per CollectConfig setting, named after the field."""
+    for verb, names in (("train", [*leaf_fields(TrainConfig), *NETWORK_FLAGS]),
+                        ("collect", list(leaf_fields(CollectConfig)))):
+        flags = {s for a in _sub(verb)._actions for s in a.option_strings}
+        assert {flag(n) for n in names} <= flags, verb
+
+
+# what `w2e train --data d` / `w2e collect --out o` built when their flags were hand-written
+TRAIN_DEFAULTS = {
+    "method": "w2e", "combo": "cfw", "primitive": "push", "steps": 6000, "clouds": 4,
+    "per_cloud": 32, "lr": 0.001, "weight_decay": 1e-05, "sim_weight": 0.0, "sim_loss": "bce",
+    "sim_detach_encoder": False, "exclude_invalid": False, "augment_yaw": False,
+    "lr_schedule": "constant", "lr_min_scale": 0.05, "aff_share": 1.0, "flip_share": 0.25,
+    "seed": 0, "log_every": 20, "ckpt_every": 200, "val_every": 250, "patience": 6,
+    "calibrate_steps": 2000, "balanced_similarity": False, "threads": 2}
+COLLECT_DEFAULTS = {
+    "out": "o", "categories": None, "split": "train", "observations": 20, "interactions": 24,
+    "primitives": ("push", "pull"), "num_points": 2048, "movable_fraction": 0.8,
+    "grasp_fraction": 0.5, "cone_fraction": 0.5, "cone_deg": 30.0, "workers": 2,
+    "obs_per_shard": 8, "seed": 0, "outcome_source": "joints"}
+
+
+def test_train_and_collect_defaults_are_the_settings_defaults():
+    a = cli.build_parser().parse_args(["train", "--data", "d"])
+    assert a.steps is None  # --steps, else --epochs, else the setting's default
+    assert asdict(from_namespace(TrainConfig, a, steps=TrainConfig.steps)) == TRAIN_DEFAULTS
+    assert from_namespace(ModelConfig, a) == ModelConfig()
+    a = cli.build_parser().parse_args(["collect", "--out", "o"])
+    assert asdict(from_namespace(CollectConfig, a)) == COLLECT_DEFAULTS
+
+
+def test_train_flags_reach_the_configs():
+    a = cli.build_parser().parse_args(
+        ["train", "--data", "d", "--clouds", "8", "--per-cloud", "16", "--exclude-invalid",
+         "--sim-detach-encoder", "--balanced-similarity", "--xyz-features", "--sa-npoint",
+         "1024", "256", "64", "16"])
+    cfg, net = from_namespace(TrainConfig, a, steps=1), from_namespace(ModelConfig, a)
+    assert (cfg.clouds, cfg.per_cloud, cfg.exclude_invalid, cfg.sim_detach_encoder,
+            cfg.balanced_similarity) == (8, 16, True, True, True)
+    assert net.xyz_features and net.sa_npoint == (1024, 256, 64, 16)
+    with pytest.raises(SystemExit):
+        cli.build_parser().parse_args(["train", "--data", "d", "--combo", "nope"])

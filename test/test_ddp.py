@@ -35,7 +35,7 @@ RTOL = 1e-3
 
 def _cfg(clouds: int, **kw) -> TrainConfig:
     base = dict(method="w2e", combo="cfw", primitive="push", steps=STEPS,
-                clouds_per_batch=clouds, interactions_per_cloud=8, seed=5, log_every=1,
+                clouds=clouds, per_cloud=8, seed=5, log_every=1,
                 ckpt_every=STEPS, calibrate_steps=0, threads=1)
     base.update(kw)
     return TrainConfig(**base)

@@ -203,16 +203,20 @@ def test_default_sizes_follow_the_paper():
 def test_network_flags_reach_the_model_config():
     """`--sa-npoint` / `--sa-radius` as typed become the run's ModelConfig; a radius <= 0 is
     refused before anything is trained."""
-    from w2e_ros.cli import _network_overrides, build_parser
+    from w2e_ros.cli import build_parser
+    from w2e_ros.core.settings import from_namespace
 
     a = build_parser().parse_args(["train", "--data", "d", "--sa-npoint", "1024", "256", "64",
                                    "16", "--sa-radius", "0.05", "0.1", "0.2", "0.4"])
-    cfg = ModelConfig(**_network_overrides(a))
+    cfg = from_namespace(ModelConfig, a)
     assert cfg.sa_npoint == (1024, 256, 64, 16) and cfg.sa_radius == (0.05, 0.1, 0.2, 0.4)
     model = W2EModel(ModelConfig(num_points=256, sa_npoint=(128, 32, 8, 4),
                                  sa_radius=(0.05, 0.1, 0.2, 0.4)))
     assert model.encoder(torch.rand(1, 256, 3)).shape[1] == 256
     bad = build_parser().parse_args(["train", "--data", "d", "--sa-radius", "0", "0.1", "0.2",
                                      "0.4"])
-    with pytest.raises(SystemExit, match="--sa-radius"):
-        _network_overrides(bad)
+    with pytest.raises(ValueError, match="sa_radius"):
+        from_namespace(ModelConfig, bad)
+    with pytest.raises(ValueError, match="one value per set-abstraction level"):
+        from_namespace(ModelConfig, build_parser().parse_args(
+            ["train", "--data", "d", "--sa-npoint", "128", "32", "8"]))

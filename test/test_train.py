@@ -39,8 +39,8 @@ def data():
 
 
 def _cfg(**kw) -> TrainConfig:
-    base = dict(method="w2e", combo="cfw", primitive="push", steps=4, clouds_per_batch=3,
-                interactions_per_cloud=8, seed=3, log_every=2, ckpt_every=2,
+    base = dict(method="w2e", combo="cfw", primitive="push", steps=4, clouds=3,
+                per_cloud=8, seed=3, log_every=2, ckpt_every=2,
                 calibrate_steps=0)
     base.update(kw)
     return TrainConfig(**base)
@@ -185,10 +185,10 @@ def test_training_on_simulated_interactions_reduces_the_loss(tmp_path):
     data = load_training_data(tmp_path / "data", "w2e", "cfw", "push")
     assert data.points.shape[1:] == (2048, 3) and data.success.any()
     # the default gives every cloud to the affordance head (C_aff only) ...
-    default = Trainer(_cfg(clouds_per_batch=3, interactions_per_cloud=16), data, device=CPU)
+    default = Trainer(_cfg(clouds=3, per_cloud=16), data, device=CPU)
     assert default.next_batch().aff_mask.all()
     # ... the paper's joint training shares the batch with the other C_sim categories
-    trainer = Trainer(_cfg(clouds_per_batch=3, interactions_per_cloud=16, sim_weight=1.0,
+    trainer = Trainer(_cfg(clouds=3, per_cloud=16, sim_weight=1.0,
                            aff_share=0.5), data, device=CPU)
     batch = trainer.next_batch()
     assert batch.aff_mask.any() and (~batch.aff_mask).any()  # C_aff and other C_sim clouds
@@ -491,7 +491,7 @@ def test_w2e_train_ablation_flags_drop_the_similarity_loss(tmp_path):
         capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
     cfg = json.loads((out / "config.json").read_text())["train"]
-    assert cfg["sim_weight"] == 0.0 and cfg["sim_grad_to_encoder"] is False
+    assert cfg["sim_weight"] == 0.0 and cfg["sim_detach_encoder"] is True
     lines = [json.loads(s) for s in (out / "metrics.jsonl").read_text().splitlines()]
     assert all(r["loss_sim"] > 0 for r in lines)  # still measured ...
     assert all(r["loss"] == pytest.approx(r["loss_aff"]) for r in lines)  # ... not trained

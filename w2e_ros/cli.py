@@ -15,7 +15,14 @@ import sys
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from w2e_ros.core.config import LEARNABILITY_SELECTIONS, ExploreConfig, TrainConfig
+from w2e_ros.core.config import (
+    LEARNABILITY_SELECTIONS,
+    NETWORK_FLAGS,
+    ExploreConfig,
+    ModelConfig,
+    TrainConfig,
+    combinations,
+)
 from w2e_ros.core.settings import add_arguments, from_namespace
 from w2e_ros.core.strategies import STRATEGIES
 
@@ -25,55 +32,22 @@ if TYPE_CHECKING:
 Handler = Callable[[argparse.Namespace], int | None]
 
 
-def _combos() -> tuple[str, ...]:
-    """The training combinations of config/categories.yaml (one list for every verb)."""
-    from w2e_ros.core.categories import load_categories
-
-    return tuple(load_categories().combinations)
-
-
 def _add_collect(sub: argparse._SubParsersAction) -> None:
+    from w2e_ros.experiments.config import CollectConfig
+
     p = sub.add_parser(
         "collect", help="run random interactions in the simulator and write training shards",
         description="Collect interactions grouped by observation into resumable shards.")
-    p.add_argument("--out", required=True, help="output directory (shards are appended)")
-    p.add_argument("--categories", nargs="+", default=None,
-                   help="categories (default: all 14)")
-    p.add_argument("--split", default="train", choices=["train", "explore", "test"],
-                   help="instance split to draw objects from")
-    p.add_argument("--observations", type=int, default=20,
-                   help="observations (instance, start state, camera) per category")
-    p.add_argument("--interactions", type=int, default=24,
-                   help="interactions per observation and primitive")
-    p.add_argument("--primitives", nargs="+", default=["push", "pull"])
-    p.add_argument("--num-points", type=int, default=2048, help="points per stored cloud")
-    p.add_argument("--movable-fraction", type=float, default=0.8,
-                   help="share of contact points drawn on movable parts (ground-truth mask)")
-    p.add_argument("--grasp-fraction", type=float, default=0.5,
-                   help="share of movable contacts on protruding geometry (handles, edges)")
-    p.add_argument("--cone-fraction", type=float, default=0.5,
-                   help="share of approach directions within 30 deg of the inward normal")
-    p.add_argument("--workers", type=int, default=2,
-                   help="parallel worker processes (local backend)")
+    add_arguments(p, CollectConfig)
     _add_backend_args(p)
-    p.add_argument("--obs-per-shard", type=int, default=8)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--outcome-source", choices=["joints", "clouds"], default="joints",
-                   help="judge success from the simulator's joint states, or from the object's "
-                        "camera clouds before and after each trial, as a real robot does")
     p.set_defaults(func=_run_collect)
 
 
 def _run_collect(a: argparse.Namespace) -> int:
     from w2e_ros.experiments.collect import CollectConfig, collect
 
-    cfg = CollectConfig(
-        out=a.out, categories=a.categories, split=a.split, observations=a.observations,
-        interactions=a.interactions, primitives=tuple(a.primitives), num_points=a.num_points,
-        movable_fraction=a.movable_fraction, grasp_fraction=a.grasp_fraction,
-        cone_fraction=a.cone_fraction, workers=a.workers, obs_per_shard=a.obs_per_shard,
-        seed=a.seed, outcome_source=a.outcome_source)
-    with _backend(a, a.workers) as backend:
+    cfg = from_namespace(CollectConfig, a)
+    with _backend(a, cfg.workers) as backend:
         summary = collect(cfg, backend)
     print(summary.table())
     return 0
@@ -97,29 +71,14 @@ def _backend(a: argparse.Namespace, workers: int) -> contextlib.closing[Backend]
 
 
 def _add_network_args(p: argparse.ArgumentParser) -> None:
-    """The network's options (``ModelConfig``) that a run may change from the default."""
-    p.add_argument("--head-layers", type=int, default=1,
-                   help="hidden layers per head (the paper: 1); a resumed run keeps its own")
-    p.add_argument("--xyz-features", action="store_true",
-                   help="points carry their coordinates as input features (the reference)")
-    p.add_argument("--sa-npoint", type=int, nargs=4, default=None, metavar="S",
-                   help="centroids per set-abstraction level (default 512 128 32 8; the "
-                        "reference on 10,000 points: 1024 256 64 16)")
-    p.add_argument("--sa-radius", type=float, nargs=4, default=None, metavar="R",
-                   help="ball radius (m) per set-abstraction level (default 0.1 0.2 0.4 0.8)")
-    p.add_argument("--local-k", type=int, default=0,
-                   help="> 0: every point carries a descriptor of its k nearest points")
+    """The network's settings (``ModelConfig``) that a run may change from the default."""
+    add_arguments(p, ModelConfig, only=NETWORK_FLAGS)
 
 
 def _network_overrides(a: argparse.Namespace) -> dict:
-    out = {"head_layers": a.head_layers, "xyz_features": a.xyz_features, "local_k": a.local_k}
-    if a.sa_npoint:
-        out["sa_npoint"] = tuple(a.sa_npoint)
-    if a.sa_radius:
-        if any(r <= 0 for r in a.sa_radius):
-            raise SystemExit("--sa-radius: every radius must be > 0")
-        out["sa_radius"] = tuple(a.sa_radius)
-    return out
+    """The network's settings as given by the flags of ``_add_network_args``."""
+    return {k: tuple(v) if isinstance(v, list) else v
+            for k, v in vars(a).items() if k in NETWORK_FLAGS}
 
 
 def _add_train(sub: argparse._SubParsersAction) -> None:
@@ -133,59 +92,16 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--data", required=True, help="collection directory (w2e collect --out)")
     p.add_argument("--out", default=None,
                    help="run directory (default runs/<method>_<combo>_<primitive>)")
-    p.add_argument("--method", default="w2e", choices=["w2e", "where2act", "fulldata"])
-    p.add_argument("--combo", default="cfw", choices=_combos())
-    p.add_argument("--primitive", default="push", choices=["push", "pull"])
-    p.add_argument("--steps", type=int, default=None,
-                   help="most optimizer steps (default 6000; validation may stop earlier)")
+    add_arguments(p, TrainConfig)
+    p.set_defaults(steps=None)  # None: from --epochs when given, else TrainConfig's
     p.add_argument("--epochs", type=float, default=None,
                    help="alternative to --steps: passes over the training interactions")
-    p.add_argument("--clouds", type=int, default=4,
-                   help="clouds (encoder passes) per batch; under torchrun per process")
-    p.add_argument("--per-cloud", type=int, default=32, help="interactions per cloud")
-    p.add_argument("--lr", type=float, default=1e-3)
-    p.add_argument("--lr-schedule", default="constant", choices=["constant", "cosine"],
-                   help="cosine: from --lr down to 5 %% of it at --steps")
-    p.add_argument("--weight-decay", type=float, default=1e-5)
-    p.add_argument("--sim-loss", default="bce", choices=["bce", "l1"],
-                   help="similarity loss to the running accuracy (reference code: bce)")
-    p.add_argument("--aff-share", type=float, default=TrainConfig.aff_share,
-                   help="share of each batch's clouds from C_aff (w2e; default %(default)s: "
-                        "all; the paper's joint training: 0.5 with --sim-weight 1)")
-    p.add_argument("--sim-weight", type=float, default=TrainConfig.sim_weight,
-                   help="weight of the joint similarity loss (w2e; default %(default)s: the "
-                        "affordance head alone, the similarity fitted afterwards by "
-                        "--calibrate-steps; the paper's joint training: 1)")
-    p.add_argument("--sim-detach-encoder", action="store_true",
-                   help="the similarity loss trains its head only, not the shared encoder")
-    p.add_argument("--flip-share", type=float, default=0.25,
-                   help="share of each cloud's rows that are flipped-approach negatives")
-    p.add_argument("--exclude-invalid", action="store_true",
-                   help="train on valid trials only (default: invalid trials are failures)")
-    p.add_argument("--augment-yaw", action="store_true",
-                   help="turn each cloud and its actions by a random angle about the vertical "
-                        "(labels hold: physics is the same under a turn about gravity)")
     p.add_argument("--val-data", nargs="+", default=None,
                    help="collections with held-out instances (e.g. --split test of the "
                         "training categories): validation every --val-every steps, best "
                         "model kept, early stop after --patience validations without gain")
-    p.add_argument("--val-every", type=int, default=250)
-    p.add_argument("--calibrate-steps", type=int, default=2000,
-                   help="steps re-fitting the similarity head to the final affordance head's "
-                        "correctness (0: keep the jointly trained head); a --resume of a "
-                        "finished run only re-runs this")
-    p.add_argument("--balanced-similarity", action="store_true",
-                   help="calibrate the similarity with successes and failures weighted "
-                        "equally (see w2e calibrate)")
-    p.add_argument("--patience", type=int, default=6,
-                   help="stop after this many validations without a new best, unless the "
-                        "scores over them still trend upwards (slope above its standard error)")
     _add_network_args(p)
     p.add_argument("--resume", action="store_true", help="continue the run in --out")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
-    p.add_argument("--log-every", type=int, default=20)
-    p.add_argument("--ckpt-every", type=int, default=200)
     p.add_argument("--no-progress", action="store_true", help="log lines instead of a bar")
     p.set_defaults(func=_run_train)
 
@@ -196,30 +112,17 @@ def _run_train(a: argparse.Namespace) -> int:
     from w2e_ros.core.data import InteractionData
     from w2e_ros.core.training import load_training_data, run_name, train
 
-    cfg = TrainConfig(method=a.method, combo=a.combo, primitive=a.primitive, lr=a.lr,
-                      weight_decay=a.weight_decay, sim_loss=a.sim_loss,
-                      sim_weight=a.sim_weight, sim_grad_to_encoder=not a.sim_detach_encoder,
-                      aff_share=a.aff_share, flip_share=a.flip_share,
-                      include_invalid=not a.exclude_invalid, augment_yaw=a.augment_yaw,
-                      lr_schedule=a.lr_schedule,
-                      clouds_per_batch=a.clouds, interactions_per_cloud=a.per_cloud,
-                      seed=a.seed, threads=a.threads, log_every=a.log_every,
-                      ckpt_every=a.ckpt_every, val_every=a.val_every, patience=a.patience,
-                      calibrate_steps=a.calibrate_steps,
-                      calibrate_balanced=a.balanced_similarity)
-    if a.steps is not None:
-        cfg.steps = a.steps
-    elif a.epochs is not None:
+    steps = a.steps
+    if steps is None and a.epochs is not None:
         n = load_training_data(a.data, a.method, a.combo, a.primitive).num_interactions
-        cfg.steps = max(1, math.ceil(a.epochs * n / (a.clouds * a.per_cloud)))
+        steps = max(1, math.ceil(a.epochs * n / (a.clouds * a.per_cloud)))
+    cfg = from_namespace(TrainConfig, a, steps=TrainConfig.steps if steps is None else steps)
     out = a.out or f"runs/{run_name(a.method, a.combo, a.primitive)}"
     val = None
     if a.val_data:
         val = InteractionData.concat([InteractionData.load(d) for d in a.val_data])
         val = val.select(primitive=a.primitive)
-    from w2e_ros.core.config import ModelConfig
-
-    mcfg = ModelConfig(**_network_overrides(a))
+    mcfg = from_namespace(ModelConfig, a)
     path = train(cfg, a.data, out, resume=a.resume, val_data=val, progress=not a.no_progress,
                  model_cfg=mcfg)
     if os.environ.get("RANK", "0") == "0":  # torchrun: process 0 speaks for the run
@@ -443,7 +346,7 @@ def _add_benchmark(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--train-data", default=None, help="training collection (replay)")
     p.add_argument("--test-data", default=None, help="test-split collection (F-score)")
     p.add_argument("--out", default="results/benchmark")
-    p.add_argument("--combos", nargs="+", default=list(_combos()), choices=_combos())
+    p.add_argument("--combos", nargs="+", default=list(combinations()), choices=combinations())
     p.add_argument("--seeds", nargs="+", type=int, default=[0])
     p.add_argument("--primitives", nargs="+", default=["push", "pull"])
     p.add_argument("--methods", nargs="+", default=["none", "random", "where2act", "nosim",
@@ -603,7 +506,7 @@ def _add_calibrate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--data", required=True, help="its training collection (w2e collect --out)")
     p.add_argument("--out", required=True, help="where to write the calibrated checkpoint")
     p.add_argument("--balanced", action="store_true")
-    p.add_argument("--combo", default=None, choices=_combos(),
+    p.add_argument("--combo", default=None, choices=combinations(),
                    help="fit the similarity on another training combination with the same "
                         "C_aff (cfw / csr share cabinet, tfr / tsw table): a w2e model's "
                         "affordance head trains on C_aff alone, so the combinations differ "
@@ -690,6 +593,10 @@ def _run_replay_pack(a: argparse.Namespace) -> int:
     return 0
 
 
+_FIT_TRAIN_SETTINGS = ("lr", "flip_share", "clouds", "per_cloud")
+"""The TrainConfig settings ``w2e ceiling fit`` takes as flags."""
+
+
 def _add_ceiling(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "ceiling", help="diagnose the model's ceiling: labels, a local oracle, a fit test",
@@ -727,14 +634,11 @@ def _add_ceiling(sub: argparse._SubParsersAction) -> None:
     fit.add_argument("--out", default="results/ceiling_fit")
     fit.add_argument("--primitive", default="pull", choices=["push", "pull"])
     fit.add_argument("--method", default="where2act", choices=["w2e", "where2act", "fulldata"])
-    fit.add_argument("--combo", default="cfw", choices=_combos())
+    fit.add_argument("--combo", default="cfw", choices=combinations())
     fit.add_argument("--interactions", type=int, default=2000)
     fit.add_argument("--steps", type=int, default=1500)
     fit.add_argument("--eval-every", type=int, default=250)
-    fit.add_argument("--lr", type=float, default=TrainConfig.lr)
-    fit.add_argument("--flip-share", type=float, default=TrainConfig.flip_share)
-    fit.add_argument("--clouds", type=int, default=TrainConfig.clouds_per_batch)
-    fit.add_argument("--per-cloud", type=int, default=TrainConfig.interactions_per_cloud)
+    add_arguments(fit, TrainConfig, only=_FIT_TRAIN_SETTINGS)
     _add_network_args(fit)
     fit.add_argument("--frozen-encoder", default="", metavar="MODEL_PT|random",
                      help="fit only a fresh head, full batch, on the frozen features of this "
@@ -779,8 +683,7 @@ def _run_ceiling_fit(a: argparse.Namespace) -> int:
     res = fit_test(FitTestConfig(
         data=a.data, out=a.out, primitive=a.primitive, method=a.method, combo=a.combo,
         interactions=a.interactions, steps=a.steps, eval_every=a.eval_every, seed=a.seed,
-        train={"lr": a.lr, "flip_share": a.flip_share, "clouds_per_batch": a.clouds,
-               "interactions_per_cloud": a.per_cloud, "threads": a.threads},
+        train={k: getattr(a, k) for k in (*_FIT_TRAIN_SETTINGS, "threads")},
         model=_network_overrides(a), frozen_encoder=a.frozen_encoder))
     for r in res["curve"]:
         print(f"step {r['step']:>6}  loss {r['train_loss']:.4f}  train AUROC {r['auroc']:.4f}  "

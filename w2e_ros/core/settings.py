@@ -9,30 +9,46 @@ command line (and the ROS parameters, ``w2e_ros.ros.params.setting_param``) are 
     cfg = from_namespace(ExploreConfig, parser.parse_args())
 
 The flag is the field's name with dashes (``similarity_bar`` -> ``--similarity-bar``); a bool
-is ``--name`` / ``--no-name``; a field holding another settings dataclass adds that one's fields
-(their names are unique across the two). ``from_dict`` rebuilds a config from its ``asdict``,
-nested or flat (the flat form older results were written in).
+is ``--name`` / ``--no-name``; a tuple or a list takes one value or more; a setting whose default
+is ``REQUIRED`` is a required flag; a field holding another settings dataclass adds that one's
+fields (their names are unique across the two). ``from_dict`` rebuilds a config from its
+``asdict``, nested or flat (the flat form older results were written in).
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import types
 import typing
-from collections.abc import Collection, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from typing import Any, TypeVar
 
 T = TypeVar("T")
 
+REQUIRED: Any = dataclasses.MISSING
+"""The default of a setting that has none: the dataclass needs it, the flag is required."""
 
-def setting(default: Any, help: str, *, choices: Sequence[str] | None = None,  # noqa: A002
+
+def setting(default: Any, help: str, *,  # noqa: A002
+            choices: Sequence[str] | Callable[[], Sequence[str]] | None = None,
             min: float | None = None, max: float | None = None) -> Any:  # noqa: A002
-    """A dataclass field for a setting: its default, its help text (the CLI flag's help and the
-    ROS parameter's description) and optionally the values or the range it allows."""
-    meta = {"help": help, "choices": tuple(choices) if choices else None, "min": min, "max": max}
+    """A dataclass field for a setting: its default (or ``REQUIRED``), its help text (the CLI
+    flag's help and the ROS parameter's description) and optionally the values or the range it
+    allows. ``choices`` may be a function returning them, called when the flags are made (for
+    values read from a file)."""
+    if choices is not None and not callable(choices):
+        choices = tuple(choices)
+    meta = {"help": help, "choices": choices or None, "min": min, "max": max}
     if isinstance(default, (list, dict, set)):
         raise TypeError("a mutable default: use a tuple")
     return dataclasses.field(default=default, metadata=meta)
+
+
+def choices_of(f: dataclasses.Field) -> tuple[str, ...] | None:
+    """The values setting ``f`` allows (None: any)."""
+    c = f.metadata.get("choices")
+    return tuple(c() if callable(c) else c) if c else None
 
 
 def flag(name: str) -> str:
@@ -62,29 +78,51 @@ def leaf_fields(cls: type) -> dict[str, tuple[dataclasses.Field, Any]]:
     return out
 
 
-def add_arguments(parser: argparse.ArgumentParser, cls: type,
-                  skip: Collection[str] = ()) -> None:
-    """One flag per setting of ``cls`` (nested dataclasses opened), but those in ``skip``:
-    the type, default, choices and help of the field."""
-    defaults = cls()
+def _optional(tp: Any) -> Any:
+    """``X`` of ``X | None``; other types as they are."""
+    args = typing.get_args(tp)
+    if typing.get_origin(tp) in (typing.Union, types.UnionType) and type(None) in args:
+        rest = [a for a in args if a is not type(None)]
+        if len(rest) == 1:
+            return rest[0]
+    return tp
+
+
+def add_arguments(parser: argparse.ArgumentParser, cls: type, skip: Collection[str] = (),
+                  only: Collection[str] | None = None) -> None:
+    """One flag per setting of ``cls`` (nested dataclasses opened), but those in ``skip`` (and,
+    given ``only``, those not in it): the type, default, choices and help of the field."""
     for name, (f, tp) in leaf_fields(cls).items():
-        if name in skip:
+        if name in skip or (only is not None and name not in only):
             continue
-        default = _get(defaults, name)
-        kw: dict[str, Any] = {"default": default, "help": f.metadata.get("help")}
+        tp = _optional(tp)
+        kw: dict[str, Any] = {"help": f.metadata.get("help")}
+        if f.default is REQUIRED:
+            kw["required"] = True
+        else:
+            kw["default"] = f.default
         if tp is bool:
             kw["action"] = argparse.BooleanOptionalAction
-        elif typing.get_origin(tp) is tuple:
+        elif typing.get_origin(tp) in (tuple, list):
             kw.update(type=typing.get_args(tp)[0], nargs="+")
         else:
             kw["type"] = _ranged(tp, f.metadata.get("min"), f.metadata.get("max"))
-            if f.metadata.get("choices"):
-                kw["choices"] = list(f.metadata["choices"])
+            if choices_of(f):
+                kw["choices"] = list(choices_of(f))
         if kw["help"]:
+            # BooleanOptionalAction adds its own; None: the help says what it means. The
+            # field's default, not the parser's (a verb may set the parser's to None)
+            if tp is not bool and kw.get("default") is not None:
+                kw["help"] += f" (default: {_shown(kw['default'])})"
             kw["help"] = kw["help"].replace("%", "%%")  # argparse formats help with %
-            if tp is not bool:  # BooleanOptionalAction adds its own
-                kw["help"] += " (default: %(default)s)"
         parser.add_argument(flag(name), **kw)
+
+
+def _shown(value: Any) -> str:
+    """A default as it is typed on the command line."""
+    if isinstance(value, (tuple, list)):
+        return " ".join(map(str, value))
+    return str(value)
 
 
 def _ranged(tp: Any, lo: float | None, hi: float | None) -> Any:
@@ -102,16 +140,6 @@ def _ranged(tp: Any, lo: float | None, hi: float | None) -> Any:
 
     parse.__name__ = tp.__name__  # argparse names the type in its "invalid ..." message
     return parse
-
-
-def _get(obj: Any, name: str) -> Any:
-    """The value of setting ``name`` in ``obj`` or in one of its nested settings."""
-    for f, tp in _fields(type(obj)):
-        if f.name == name:
-            return getattr(obj, name)
-        if _nested(tp) and name in leaf_fields(tp):
-            return _get(getattr(obj, f.name), name)
-    raise AttributeError(name)
 
 
 def _build(cls: type[T], values: Mapping[str, Any]) -> T:

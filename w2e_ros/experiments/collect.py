@@ -41,28 +41,10 @@ from w2e_ros.core.primitives import Action, TrialResult
 from w2e_ros.core.proposals import ProposalConfig, Proposer
 from w2e_ros.core.targets import Target, stable_seed
 from w2e_ros.experiments.backends import Backend, LocalBackend
+from w2e_ros.experiments.config import CollectConfig
 from w2e_ros.experiments.sim_world import Cloud, SimWorld
 
 log = logging.getLogger("w2e.collect")
-
-
-@dataclass
-class CollectConfig:
-    out: str
-    categories: list[str] | None = None  # None: all 14
-    split: str = "train"
-    observations: int = 20  # per category
-    interactions: int = 24  # per observation and primitive
-    primitives: tuple[str, ...] = ("push", "pull")
-    num_points: int = 2048
-    movable_fraction: float = 0.8  # contacts on movable parts (ground-truth mask)
-    grasp_fraction: float = 0.5  # of those, on protruding geometry (handles, edges)
-    cone_fraction: float = 0.5  # approach within cone_deg of the inward normal, else uniform
-    cone_deg: float = 30.0
-    workers: int = 2
-    obs_per_shard: int = 8
-    seed: int = 0
-    outcome_source: str = "joints"  # joints | clouds (w2e_ros.core.outcome)
 
 
 @dataclass

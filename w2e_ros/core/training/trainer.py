@@ -63,8 +63,8 @@ class Trainer:
         self.acc = RunningAccuracy(data.num_interactions)
         # every process draws the same global batch (same seed) and keeps its own clouds
         self.sampler = BalancedSampler(data, tuple(dict.fromkeys(self.aff_cats + self.sim_cats)),
-                                       cfg.clouds_per_batch * self.dist.world,
-                                       cfg.interactions_per_cloud, self.rng,
+                                       cfg.clouds * self.dist.world,
+                                       cfg.per_cloud, self.rng,
                                        self.aff_cats if self.sim_cats else (), cfg.aff_share,
                                        cfg.flip_share)
         self.ddp: nn.Module | None = None
@@ -87,7 +87,7 @@ class Trainer:
 
     @property
     def steps_per_epoch(self) -> int:
-        per_step = self.cfg.clouds_per_batch * self.cfg.interactions_per_cloud * self.dist.world
+        per_step = self.cfg.clouds * self.cfg.per_cloud * self.dist.world
         return max(1, math.ceil(self.data.num_interactions / per_step))
 
     def next_batch(self) -> Batch:
@@ -104,20 +104,20 @@ class Trainer:
 
     def _shard_batch(self) -> tuple[Batch, Shard]:
         """This process's clouds of the global batch (every cloud gives exactly
-        ``interactions_per_cloud`` consecutive rows) and what it needs of the rest."""
+        ``per_cloud`` consecutive rows) and what it needs of the rest."""
         rows, flip = self.sampler.sample()
         cats = self.data.category[self.data.obs_index[rows]]
         sim = np.isin(cats, list(self.sim_cats))
-        per = self.cfg.clouds_per_batch * self.cfg.interactions_per_cloud
+        per = self.cfg.clouds * self.cfg.per_cloud
         lo, hi = self.dist.rank * per, (self.dist.rank + 1) * per
         shard = Shard(self.dist.world, int(np.isin(cats, list(self.aff_cats)).sum()),
                       rows[sim], int(sim[:lo].sum()))
-        angles = (self.rng.uniform(0.0, 2 * np.pi, self.cfg.clouds_per_batch * self.dist.world)
+        angles = (self.rng.uniform(0.0, 2 * np.pi, self.cfg.clouds * self.dist.world)
                   if self.cfg.augment_yaw else None)  # drawn for the global batch: same rng
         batch = make_batch(self.data, rows[lo:hi], self.aff_cats, self.sim_cats, self.device,
                            flip=flip[lo:hi])
         if angles is not None:
-            lo = self.dist.rank * self.cfg.clouds_per_batch  # (a cloud drawn twice is one)
+            lo = self.dist.rank * self.cfg.clouds  # (a cloud drawn twice is one)
             batch = rotate_yaw(batch, angles[lo:lo + len(batch.clouds)])
         return batch, shard
 
@@ -143,13 +143,13 @@ class Trainer:
                 raise ValueError("data-parallel steps draw their own batch")
             batch, shard = self._shard_batch()
             loss, stats = self.ddp(batch, lambda m, b: training_losses(
-                m, b, self.acc, self.cfg.sim_weight, self.cfg.sim_grad_to_encoder,
+                m, b, self.acc, self.cfg.sim_weight, not self.cfg.sim_detach_encoder,
                 self.cfg.sim_loss, shard))
             stats = self.dist.mean(stats, ("loss", "loss_aff", "loss_sim"))  # the global ones
         else:
             batch = batch if batch is not None else self.next_batch()
             loss, stats = training_losses(self.model, batch, self.acc, self.cfg.sim_weight,
-                                          self.cfg.sim_grad_to_encoder, self.cfg.sim_loss)
+                                          not self.cfg.sim_detach_encoder, self.cfg.sim_loss)
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         self.opt.step()
@@ -231,7 +231,7 @@ def train(cfg: TrainConfig, data_dir: str | Path, out_dir: str | Path, resume: b
     run_dir = Path(out_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     data = load_training_data(data_dir, cfg.method, cfg.combo, cfg.primitive,
-                              cfg.include_invalid)
+                              not cfg.exclude_invalid)
     trainer, validator = _open_run(cfg, data, run_dir, resume, val_data, model_cfg,
                                    distributed)
     _fit(trainer, validator, run_dir, progress and distributed.main, distributed.main)
@@ -353,7 +353,7 @@ def _calibrate_run(trainer: Trainer, data: InteractionData, validator: Validator
     model, meta = load_model(run_dir / "model.pt", trainer.device)
     before = validator.run(model) if validator is not None else {}
     stats = calibrate_similarity(model, data, trainer.sim_cats, cfg.calibrate_steps,
-                                 cfg.seed, balanced=cfg.calibrate_balanced)
+                                 cfg.seed, balanced=cfg.balanced_similarity)
     after = validator.run(model) if validator is not None else {}
     for k in ("csim_simcorr_auroc", "novel_simcorr_auroc", "novel_sim_mean",
               "novel_confidence_simcorr_auroc", "novel_simcorr_within_auroc",
