@@ -21,7 +21,7 @@ from w2e_ros.core.config import (
     TrainConfig,
 )
 from w2e_ros.core.settings import flag, from_namespace, leaf_fields
-from w2e_ros.experiments.config import CollectConfig
+from w2e_ros.experiments.config import CollectConfig, LabelCheckConfig, OracleConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCUMENTS = [ROOT / "README.md", ROOT / "bench" / "REPRODUCE.md",
@@ -190,3 +190,22 @@ def test_train_flags_reach_the_configs():
     assert net.xyz_features and net.sa_npoint == (1024, 256, 64, 16)
     with pytest.raises(SystemExit):
         cli.build_parser().parse_args(["train", "--data", "d", "--combo", "nope"])
+
+
+def test_ceiling_checks_take_their_settings_as_flags():
+    """`w2e ceiling labels` / `oracle` build their configs from one flag per setting; the
+    defaults are those of the hand-written flags they replaced."""
+    p = cli.build_parser()
+    lab = from_namespace(LabelCheckConfig, p.parse_args(["ceiling", "labels", "--data", "d"]))
+    assert asdict(lab) == {"data": "d", "out": "results/ceiling_labels", "trials": 200,
+                           "primitives": ("push", "pull"), "positive_share": 0.5, "seed": 0}
+    orc = from_namespace(OracleConfig, p.parse_args(
+        ["ceiling", "oracle", "--data", "d", "--radii", "0.01", "--primitives", "pull"]))
+    assert (orc.radii, orc.primitives, orc.samples, orc.trials, orc.out) == (
+        (0.01,), ("pull",), 8, 200, "results/ceiling_oracle")
+    for bad in (["--samples", "0"], ["--primitives", "poke"]):
+        with pytest.raises(SystemExit):
+            p.parse_args(["ceiling", "oracle", "--data", "d", *bad])
+    with pytest.raises(ValueError, match="radius"):
+        from_namespace(OracleConfig, p.parse_args(["ceiling", "oracle", "--data", "d",
+                                                   "--radii", "0"]))

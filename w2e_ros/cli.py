@@ -25,6 +25,7 @@ from w2e_ros.core.config import (
 )
 from w2e_ros.core.settings import add_arguments, from_namespace
 from w2e_ros.core.strategies import STRATEGIES
+from w2e_ros.experiments.config import CollectConfig, LabelCheckConfig, OracleConfig
 
 if TYPE_CHECKING:
     from w2e_ros.experiments.backends import Backend
@@ -33,8 +34,6 @@ Handler = Callable[[argparse.Namespace], int | None]
 
 
 def _add_collect(sub: argparse._SubParsersAction) -> None:
-    from w2e_ros.experiments.config import CollectConfig
-
     p = sub.add_parser(
         "collect", help="run random interactions in the simulator and write training shards",
         description="Collect interactions grouped by observation into resumable shards.")
@@ -44,7 +43,7 @@ def _add_collect(sub: argparse._SubParsersAction) -> None:
 
 
 def _run_collect(a: argparse.Namespace) -> int:
-    from w2e_ros.experiments.collect import CollectConfig, collect
+    from w2e_ros.experiments.collect import collect
 
     cfg = from_namespace(CollectConfig, a)
     with _backend(a, cfg.workers) as backend:
@@ -608,26 +607,10 @@ def _add_ceiling(sub: argparse._SubParsersAction) -> None:
                     "training interactions and report how well it ranks them (train AUROC).")
     cs = p.add_subparsers(dest="check", required=True)
     lab = cs.add_parser("labels", help="label smoothness of the simulator")
-    lab.add_argument("--data", required=True, help="collection whose valid trials are replayed")
-    lab.add_argument("--out", default="results/ceiling_labels")
-    lab.add_argument("--trials", type=int, default=200, help="valid trials per primitive")
-    lab.add_argument("--primitives", nargs="+", default=["push", "pull"],
-                     choices=["push", "pull"])
-    lab.add_argument("--seed", type=int, default=0)
+    add_arguments(lab, LabelCheckConfig)
     lab.set_defaults(func=_run_ceiling_labels)
     orc = cs.add_parser("oracle", help="how well the outcomes around a contact predict it")
-    orc.add_argument("--data", required=True,
-                     help="collection of held-out instances whose valid trials are asked about")
-    orc.add_argument("--out", default="results/ceiling_oracle")
-    orc.add_argument("--trials", type=int, default=200, help="valid trials per primitive")
-    orc.add_argument("--primitives", nargs="+", default=["push", "pull"],
-                     choices=["push", "pull"])
-    orc.add_argument("--radii", nargs="+", type=float, default=[0.003, 0.010, 0.023],
-                     help="disc radii along the surface (m); 0.023 is the point spacing of "
-                          "2,048-point clouds")
-    orc.add_argument("--samples", type=int, default=8,
-                     help="perturbed contacts per trial and radius")
-    orc.add_argument("--seed", type=int, default=0)
+    add_arguments(orc, OracleConfig)
     orc.set_defaults(func=_run_ceiling_oracle)
     fit = cs.add_parser("fit", help="can the network fit a small training set?")
     fit.add_argument("--data", required=True, help="training collection")
@@ -650,24 +633,18 @@ def _add_ceiling(sub: argparse._SubParsersAction) -> None:
 
 
 def _run_ceiling_labels(a: argparse.Namespace) -> int:
-    from w2e_ros.experiments.ceiling import LabelCheckConfig, label_smoothness, labels_table
+    from w2e_ros.experiments.ceiling import label_smoothness, labels_table
 
-    res = label_smoothness(LabelCheckConfig(data=a.data, out=a.out, trials_per_primitive=a.trials,
-                                            primitives=tuple(a.primitives), seed=a.seed))
+    res = label_smoothness(from_namespace(LabelCheckConfig, a))
     print(labels_table(res))
     print(f"{res['seconds']:.0f} s; written to {a.out}/labels.json and labels.md")
     return 0
 
 
 def _run_ceiling_oracle(a: argparse.Namespace) -> int:
-    from w2e_ros.experiments.ceiling import OracleConfig, local_oracle, oracle_table
+    from w2e_ros.experiments.ceiling import local_oracle, oracle_table
 
-    if a.samples < 1 or a.trials < 1 or any(r <= 0 for r in a.radii):
-        raise SystemExit("w2e ceiling oracle: --trials and --samples must be >= 1 and every "
-                         "radius > 0")
-    cfg = OracleConfig(data=a.data, out=a.out, trials_per_primitive=a.trials,
-                       primitives=tuple(a.primitives), radii=tuple(a.radii),
-                       samples=a.samples, seed=a.seed)
+    cfg = from_namespace(OracleConfig, a)
     res = local_oracle(cfg)
     print(oracle_table(res, cfg.radii))
     print(f"{res['seconds']:.0f} s; written to {a.out}/oracle.json and oracle.md")

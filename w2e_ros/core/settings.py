@@ -103,10 +103,12 @@ def add_arguments(parser: argparse.ArgumentParser, cls: type, skip: Collection[s
             kw["default"] = f.default
         if tp is bool:
             kw["action"] = argparse.BooleanOptionalAction
-        elif typing.get_origin(tp) in (tuple, list):
-            kw.update(type=typing.get_args(tp)[0], nargs="+")
         else:
-            kw["type"] = _ranged(tp, f.metadata.get("min"), f.metadata.get("max"))
+            many = typing.get_origin(tp) in (tuple, list)  # one value or more, each checked
+            kw["type"] = _ranged(typing.get_args(tp)[0] if many else tp,
+                                 f.metadata.get("min"), f.metadata.get("max"))
+            if many:
+                kw["nargs"] = "+"
             if choices_of(f):
                 kw["choices"] = list(choices_of(f))
         if kw["help"]:

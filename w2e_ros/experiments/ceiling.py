@@ -26,6 +26,7 @@ from w2e_ros.core.config import ModelConfig, TrainConfig
 from w2e_ros.core.data import InteractionData
 from w2e_ros.core.metrics import auroc, classification_metrics
 from w2e_ros.core.primitives import Action
+from w2e_ros.experiments.config import LabelCheckConfig, OracleConfig
 
 log = logging.getLogger("w2e.ceiling")
 
@@ -62,16 +63,6 @@ def perturb(action: Action, normal: np.ndarray, shift: float, turn_deg: float,
         axis = _unit(axis - (axis @ up) * up)
         up, fwd = _unit(_rotate(up, axis, turn_deg)), _unit(_rotate(fwd, axis, turn_deg))
     return Action(point=point, up=up, forward=fwd, primitive=action.primitive)
-
-
-@dataclass
-class LabelCheckConfig:
-    data: str  # a collection (the novel categories' test or explore split)
-    out: str
-    trials_per_primitive: int = 200  # valid stored trials replayed per primitive
-    primitives: tuple[str, ...] = ("push", "pull")
-    positive_share: float = 0.5  # of the replayed trials, successes where there are enough
-    seed: int = 0
 
 
 def _pick_trials(data: InteractionData, primitive: str, n: int, positive_share: float,
@@ -133,7 +124,7 @@ def _run_stored_trials(cfg: LabelCheckConfig | OracleConfig, desc: str, fill,
     rows: list[dict] = []
     t0 = time.perf_counter()
     for prim in cfg.primitives:
-        picked = _pick_trials(data, prim, cfg.trials_per_primitive, cfg.positive_share, rng)
+        picked = _pick_trials(data, prim, cfg.trials, cfg.positive_share, rng)
         for r in tqdm(picked, desc=f"{desc} {prim}", unit="trial"):
             trial = _StoredTrial(data, int(r))
             row = {"primitive": prim, "category": trial.target.category, "row": int(r),
@@ -197,19 +188,6 @@ def labels_table(result: dict) -> str:
             lines.append(f"| {g} | {cell['n']} ({cell['positives']}) | {vals} |")
         lines.append("")
     return "\n".join(lines)
-
-
-@dataclass
-class OracleConfig:
-    data: str  # a collection of held-out instances (test or explore split)
-    out: str
-    trials_per_primitive: int = 200
-    primitives: tuple[str, ...] = ("push", "pull")
-    radii: tuple[float, ...] = (0.003, 0.010, 0.023)  # m; 0.023 = the clouds' point spacing
-    samples: int = 8  # perturbed contacts per trial and radius
-    positive_share: float = 0.5
-    boot: int = 300
-    seed: int = 0
 
 
 def local_oracle(cfg: OracleConfig, world=None) -> dict:

@@ -35,3 +35,41 @@ class CollectConfig:
     outcome_source: str = setting("joints", "judge success from the simulator's joint states, "
                                   "or from the object's camera clouds before and after each "
                                   "trial, as a real robot does", choices=("joints", "clouds"))
+
+
+@dataclass
+class LabelCheckConfig:
+    """``w2e ceiling labels``: stored valid trials replayed as they were and perturbed."""
+
+    data: str = setting(REQUIRED, "collection whose valid trials are replayed (the novel "
+                        "categories' test or explore split)")
+    out: str = setting("results/ceiling_labels", "output directory")
+    trials: int = setting(200, "valid trials per primitive", min=1)
+    primitives: tuple[str, ...] = setting(("push", "pull"), "primitives to replay",
+                                          choices=("push", "pull"))
+    positive_share: float = setting(0.5, "share of the replayed trials that are successes, "
+                                    "where there are enough", min=0.0, max=1.0)
+    seed: int = setting(0, "seed of the trials drawn and the perturbations")
+
+
+@dataclass
+class OracleConfig:
+    """``w2e ceiling oracle``: each trial scored by the outcomes of contacts around it."""
+
+    data: str = setting(REQUIRED, "collection of held-out instances whose valid trials are "
+                        "asked about")
+    out: str = setting("results/ceiling_oracle", "output directory")
+    trials: int = setting(200, "valid trials per primitive", min=1)
+    primitives: tuple[str, ...] = setting(("push", "pull"), "primitives to ask about",
+                                          choices=("push", "pull"))
+    radii: tuple[float, ...] = setting((0.003, 0.010, 0.023), "disc radii along the surface "
+                                       "(m); 0.023 is the point spacing of 2,048-point clouds")
+    samples: int = setting(8, "perturbed contacts per trial and radius", min=1)
+    positive_share: float = setting(0.5, "share of the asked trials that are successes, where "
+                                    "there are enough", min=0.0, max=1.0)
+    boot: int = setting(300, "bootstrap resamples for the intervals", min=1)
+    seed: int = setting(0, "seed of the trials drawn and the perturbed contacts")
+
+    def __post_init__(self) -> None:
+        if any(r <= 0 for r in self.radii):
+            raise ValueError(f"radii: every radius must be > 0, got {self.radii}")
