@@ -16,7 +16,6 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from w2e_ros.core.config import (
-    LEARNABILITY_SELECTIONS,
     NETWORK_FLAGS,
     ExploreConfig,
     ModelConfig,
@@ -25,7 +24,12 @@ from w2e_ros.core.config import (
 )
 from w2e_ros.core.settings import add_arguments, from_namespace
 from w2e_ros.core.strategies import STRATEGIES
-from w2e_ros.experiments.config import CollectConfig, LabelCheckConfig, OracleConfig
+from w2e_ros.experiments.config import (
+    CollectConfig,
+    LabelCheckConfig,
+    LearnabilityConfig,
+    OracleConfig,
+)
 
 if TYPE_CHECKING:
     from w2e_ros.experiments.backends import Backend
@@ -212,36 +216,10 @@ def _add_learnability(sub: argparse._SubParsersAction) -> None:
                     "interactions from a collection on the EXPLORE instances of the novel "
                     "categories (random, or the N the model gets most wrong: oracle) and "
                     "score it on the TEST interactions. Writes a table, JSON and a plot.")
-    p.add_argument("--model", required=True, help="base checkpoint (w2e train's model.pt)")
-    p.add_argument("--pool-data", required=True,
-                   help="collection on explore instances (w2e collect --split explore)")
-    p.add_argument("--test-data", required=True,
-                   help="test-split collection (with --validate: the explore collection)")
-    p.add_argument("--replay-data", default=None, help="training collection (replay)")
-    p.add_argument("--sizes", nargs="+", type=int, default=[0, 55, 110, 275, 550, 1100, 2200])
-    p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
-    p.add_argument("--selections", nargs="+", default=["random", "oracle"],
-                   choices=list(LEARNABILITY_SELECTIONS),
-                   help="random; oracle: the N the model gets most wrong (hindsight); "
-                        "oracle_stratified: the most wrong of each class in the pool's "
-                        "class mix (hindsight); "
-                        "confident: the N it rates most likely to succeed (no labels); "
-                        "half_success: random with half successes (hindsight); "
-                        "unfamiliar: the N lowest similarities (no labels); unfamiliar_half: "
-                        "half of them, half random; unfamiliar_failure: the least familiar "
-                        "of the predicted failures; uncertain_failure: the predicted failures "
-                        "closest to 0.5")
-    p.add_argument("--categories", nargs="+", default=None)
-    p.add_argument("--references", nargs="+", default=[],
-                   help="other checkpoints drawn as lines (e.g. the fulldata model)")
-    p.add_argument("--validate", action="store_true",
-                   help="pool from explore instances 30-34, judge on 35-39 (never the test "
-                        "split): for choosing settings")
+    add_arguments(p, LearnabilityConfig, skip=_RUN_SETTINGS)
     p.add_argument("--per-category", action="store_true",
                    help="one curve per novel category, each fine-tuned on its own "
                         "interactions only (out/<category>/ and out/per_category.md)")
-    _add_explore_args(p)
-    p.add_argument("--out", default="results/learnability")
     p.add_argument("--threads", type=int, default=2)
     p.set_defaults(func=_run_learnability)
 
@@ -251,19 +229,10 @@ def _run_learnability(a: argparse.Namespace) -> int:
 
     import torch
 
-    from w2e_ros.experiments.learnability import (
-        LearnabilityConfig,
-        run_learnability,
-        run_per_category,
-    )
+    from w2e_ros.experiments.learnability import run_learnability, run_per_category
 
     torch.set_num_threads(a.threads)
-    cfg = LearnabilityConfig(
-        model=a.model, pool_data=a.pool_data, test_data=a.test_data,
-        replay_data=a.replay_data, out=a.out, sizes=tuple(a.sizes), seeds=tuple(a.seeds),
-        selections=tuple(a.selections), validate=a.validate,
-        categories=tuple(a.categories) if a.categories else None,
-        references=tuple(a.references), explore=_explore_config(a))
+    cfg = from_namespace(LearnabilityConfig, a)
     if a.per_category:
         summary = run_per_category(cfg)
         print(Path(a.out, "per_category.md").read_text())

@@ -151,7 +151,8 @@ def _build(cls: type[T], values: Mapping[str, Any]) -> T:
             kw[f.name] = _build(tp, values)
         elif f.name in values:
             v = values[f.name]
-            kw[f.name] = tuple(v) if typing.get_origin(tp) is tuple else v
+            many = typing.get_origin(_optional(tp)) is tuple and v is not None
+            kw[f.name] = tuple(v) if many else v
     return cls(**kw)
 
 

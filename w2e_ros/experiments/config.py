@@ -3,9 +3,10 @@ field, ``w2e_ros.core.settings``), kept free of heavy imports so ``w2e --help`` 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from w2e_ros.core.categories import SPLITS
+from w2e_ros.core.config import LEARNABILITY_SELECTIONS, ExploreConfig
 from w2e_ros.core.settings import REQUIRED, setting
 
 
@@ -73,3 +74,36 @@ class OracleConfig:
     def __post_init__(self) -> None:
         if any(r <= 0 for r in self.radii):
             raise ValueError(f"radii: every radius must be > 0, got {self.radii}")
+
+
+@dataclass
+class LearnabilityConfig:
+    """``w2e learnability``: test metrics of the model fine-tuned on N interactions of a pool
+    (the novel categories' explore instances)."""
+
+    model: str = setting(REQUIRED, "base checkpoint (w2e train's model.pt)")
+    pool_data: str = setting(REQUIRED, "collection on explore instances (w2e collect --split "
+                             "explore)")
+    test_data: str = setting(REQUIRED, "test-split collection (with --validate: the explore "
+                             "collection)")
+    replay_data: str | None = setting(None, "training collection (replay)")
+    out: str = setting("results/learnability", "output directory")
+    sizes: tuple[int, ...] = setting((0, 55, 110, 275, 550, 1100, 2200), "numbers N of pool "
+                                     "interactions fine-tuned on")
+    seeds: tuple[int, ...] = setting((0, 1, 2), "seeds of the selection and the fine-tuning")
+    selections: tuple[str, ...] = setting(
+        ("random", "oracle"), "random; oracle: the N the model gets most wrong (hindsight); "
+        "oracle_stratified: the most wrong of each class in the pool's class mix (hindsight); "
+        "confident: the N it rates most likely to succeed (no labels); half_success: random "
+        "with half successes (hindsight); unfamiliar: the N lowest similarities (no labels); "
+        "unfamiliar_half: half of them, half random; unfamiliar_failure: the least familiar "
+        "of the predicted failures; uncertain_failure: the predicted failures closest to 0.5",
+        choices=LEARNABILITY_SELECTIONS)
+    explore_objects: int = setting(10, "explore instances per category the pool may use")
+    validate: bool = setting(False, "pool from explore instances 30-34, judge on 35-39 (never "
+                             "the test split): for choosing settings")
+    categories: tuple[str, ...] | None = setting(None, "novel categories (default: those of "
+                                                 "the model's combination)")
+    references: tuple[str, ...] = setting((), "other checkpoints drawn as lines (e.g. the "
+                                          "fulldata model)")
+    explore: ExploreConfig = field(default_factory=ExploreConfig)

@@ -32,13 +32,13 @@ import json
 import logging
 import time
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 
 from w2e_ros.core.categories import load_categories
-from w2e_ros.core.config import LEARNABILITY_SELECTIONS, ExploreConfig
+from w2e_ros.core.config import LEARNABILITY_SELECTIONS
 from w2e_ros.core.data import InteractionData
 from w2e_ros.core.evaluate import evaluation_instances
 from w2e_ros.core.finetune import W2EExplorer, similarity_is_balanced, trains_similarity
@@ -47,25 +47,9 @@ from w2e_ros.core.model import W2EModel, load_model
 from w2e_ros.core.predict import predict_interactions
 from w2e_ros.core.strategies import Scored, get_strategy
 from w2e_ros.core.training import replay_data
+from w2e_ros.experiments.config import LearnabilityConfig
 
 log = logging.getLogger("w2e.learnability")
-
-
-@dataclass
-class LearnabilityConfig:
-    model: str  # checkpoint of the base model
-    pool_data: str  # collection on explore-split instances of the novel categories
-    test_data: str  # collection on test-split instances (validate: explore instances 35-39)
-    replay_data: str | None = None
-    out: str = "results/learnability"
-    sizes: tuple[int, ...] = (0, 55, 110, 275, 550, 1100, 2200)
-    seeds: tuple[int, ...] = (0, 1, 2)
-    selections: tuple[str, ...] = ("random", "oracle")
-    explore_objects: int = 10  # explore instances per category the pool may use
-    validate: bool = False  # pool: first 5 explore instances; judged on the other 5
-    categories: tuple[str, ...] | None = None
-    references: tuple[str, ...] = ()  # other checkpoints drawn as lines (e.g. fulldata)
-    explore: ExploreConfig = field(default_factory=ExploreConfig)
 
 
 def _metrics(aff: np.ndarray, sim: np.ndarray, data: InteractionData) -> dict[str, float]:
