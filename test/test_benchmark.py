@@ -211,14 +211,14 @@ def test_summary_states_the_settings_the_runs_were_made_with(tmp_path):
         _predictions(tmp_path / d / "predictions_cfw_pull.npz", methods, y, 1)
         made = asdict(BenchmarkConfig(out=str(tmp_path / d), combos=("cfw",), methods=methods,
                                       seeds=(0,), budgets=(1,)))
-        made["explore"].update(anchor=0.01, check_approach=True, finetune_steps=steps)
+        made["explore"].update(anchor=0.01, check_approach=False, finetune_steps=steps)
         (tmp_path / d / "config.json").write_text(json.dumps(made, default=str))
     assert cli.main(["benchmark", "--summarize-only", "--combos", "cfw", "--primitives", "pull",
                      "--budgets", "1", "--bootstrap", "10", "--out", str(tmp_path / "sum"),
                      "--merge", str(tmp_path / "a"), f"{tmp_path / 'b'}:similarity"]) == 0
     doc = json.loads((tmp_path / "sum" / "benchmark.json").read_text())
     cfg = doc["config"]
-    assert cfg["explore"]["anchor"] == 0.01 and cfg["explore"]["check_approach"] is True
+    assert cfg["explore"]["anchor"] == 0.01 and cfg["explore"]["check_approach"] is False
     assert cfg["methods"] == ["none", "random", "similarity"]
     assert cfg["explore"]["finetune_steps"] == {"differs": {str(tmp_path / "a"): 2000,
                                                             str(tmp_path / "b"): 500}}

@@ -159,7 +159,9 @@ class FakeModel:
 
 
 def _fake_cfg(**kw) -> ExploreConfig:
-    return ExploreConfig(**{"points_per_object": 8, "dirs_per_point": 2, **kw})
+    """The loop's bookkeeping on synthetic clouds: no approach check unless a test asks."""
+    return ExploreConfig(**{"points_per_object": 8, "dirs_per_point": 2,
+                            "check_approach": False, **kw})
 
 
 def test_budget_is_b_interactions_per_object_in_rounds_capped_per_object(novel):
@@ -406,7 +408,7 @@ def test_fewshot_spends_the_budget_per_object_over_all_novel_categories():
     cfg = ExploreConfig.from_dict(dict(budget=1, points_per_object=8, dirs_per_point=2,
                                        finetune_steps=2, finetune_min_steps=2,
                                        snapshot_budgets=(1,), similarity_bar=1.01,
-                                       round_size=2))
+                                       round_size=2, check_approach=False))
     meta = {"aff_categories": ["cabinet"], "sim_categories": ["cabinet", "faucet", "window"]}
     world = SimWorld(SMALL.num_points)
     runs = fewshot(model, meta, world, ["kettle", "door"], get_strategy("random"), cfg, "push",
