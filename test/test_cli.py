@@ -130,7 +130,8 @@ def test_flags_reach_the_config_without_copies():
 
 def test_results_written_before_the_split_read_back():
     """Committed results store ``asdict(ExploreConfig)`` flat, the bar as sim_bar."""
-    doc = json.loads((ROOT / "bench" / "results" / "benchmark.json").read_text())
+    doc = json.loads((ROOT / "bench" / "results" / "combos_2026-12-03" / "benchmark.json")
+                     .read_text())
     flat = doc["config"]["explore"]
     assert "sim_bar" in flat and "finetune_steps" in flat
     cfg = ExploreConfig.from_dict(flat)
