@@ -220,7 +220,7 @@ def collect_files(jobs: list[Job], work: Path, logs: Path, limit: int, parts: in
     return bins, left_out
 
 
-def main(argv: list[str] | None = None) -> int:
+def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--pack", type=Path, default=REPO / "device_pack")
     p.add_argument("--out", type=Path, default=os.environ.get("OUT"),
@@ -243,6 +243,52 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--max-parts", type=int, default=4,
                    help="tarballs at most: results.tar.gz, then results-1.tar.gz ... for "
                         "outputs that do not fit the first (the tool brings back 8 files)")
+    return p
+
+
+def _job_env(manifest: dict, site: Path, parallel: int) -> dict[str, str]:
+    """Every job's environment: the travelled wheels and this checkout importable, the cores
+    shared out between the jobs running at once."""
+    threads = max(1, (os.cpu_count() or 1) // parallel)
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": str(threads),
+           **manifest.get("env", {})}
+    env["PYTHONPATH"] = os.pathsep.join(
+        [*([str(site)] if manifest["wheels"] else []), str(REPO),
+         *([env["PYTHONPATH"]] if env.get("PYTHONPATH") else [])])
+    return env
+
+
+def _summary(manifest: dict, jobs: list[Job], t0: float, deadline: float, parallel: int,
+             wheels: tuple[int, float], tarballs: list[str], left_out: list[str]) -> dict:
+    rc, wheel_s = wheels
+    return {
+        "pack": manifest["name"], "commit": manifest.get("commit"), "host": host_info(),
+        "deadline_s": deadline, "parallel": parallel, "wheels_s": round(wheel_s, 2),
+        "wheels_rc": rc, "seconds": round(time.monotonic() - t0, 2), "tarballs": tarballs,
+        "left_out": left_out,
+        "jobs": [{"name": j.name, "argv": j.argv, "status": j.status, "rc": j.rc,
+                  "timed_out": j.timed_out, "timeout_s": j.timeout_s,
+                  "start_s": round(j.start - t0, 2) if j.start else None,
+                  "seconds": round(j.end - j.start, 2) if j.end else None,
+                  "outputs": j.outputs, "notes": j.notes}
+                 for j in jobs],
+    }
+
+
+def _write_tarballs(out: Path, stage: Path, tarballs: list[str], bins: list) -> None:
+    """The summary first in results.tar.gz, then each bin's files; summary.json beside."""
+    out.mkdir(parents=True, exist_ok=True)
+    for i, (tarball, files) in enumerate(zip(tarballs, bins, strict=True)):
+        with tarfile.open(out / tarball, "w:gz") as tar:
+            if i == 0:
+                tar.add(stage / "summary.json", "results/summary.json")
+            for path, name in files:
+                tar.add(path, f"results/{name}")
+    shutil.copy(stage / "summary.json", out / "summary.json")
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = _parser()
     a = p.parse_args(argv)
     t0 = time.monotonic()
     if a.out is None:
@@ -251,7 +297,7 @@ def main(argv: list[str] | None = None) -> int:
     deadline = a.deadline_s or manifest.get("deadline_s") or 540.0
     parallel = a.parallel or manifest.get("parallel") or os.cpu_count() or 1
     reserve = min(a.reserve_s, deadline / 4)  # a short deadline still leaves jobs most of it
-    out, work = a.out, a.work or Path(tempfile.mkdtemp(prefix="w2e_device_"))
+    work = a.work or Path(tempfile.mkdtemp(prefix="w2e_device_"))
     stage = Path(tempfile.mkdtemp(prefix="w2e_results_"))
     logs = stage / "logs"
     logs.mkdir(parents=True)
@@ -268,12 +314,7 @@ def main(argv: list[str] | None = None) -> int:
         f"{parallel} at a time, deadline {deadline:.0f} s, jobs end by {deadline - reserve:.0f} s")
     rc, wheel_s, pip_out = install_wheels(a.pack, manifest["wheels"], a.site, say)
     link_inputs(a.pack, manifest["inputs"], work)
-    threads = max(1, (os.cpu_count() or 1) // parallel)
-    env = {**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": str(threads),
-           **manifest.get("env", {})}
-    env["PYTHONPATH"] = os.pathsep.join(
-        [*([str(a.site)] if manifest["wheels"] else []), str(REPO),
-         *([env["PYTHONPATH"]] if env.get("PYTHONPATH") else [])])
+    env = _job_env(manifest, a.site, parallel)
     jobs = [Job(j["name"], j["argv"], j["outputs"], j.get("timeout_s"), j.get("env", {}))
             for j in manifest["jobs"]]
     if rc != 0:
@@ -285,18 +326,8 @@ def main(argv: list[str] | None = None) -> int:
                say).run()
     bins, left_out = collect_files(jobs, work, logs, int(a.max_tar_mib * MIB), a.max_parts)
     tarballs = ["results.tar.gz"] + [f"results-{i}.tar.gz" for i in range(1, len(bins))]
-    summary = {
-        "pack": manifest["name"], "commit": manifest.get("commit"), "host": host_info(),
-        "deadline_s": deadline, "parallel": parallel, "wheels_s": round(wheel_s, 2),
-        "wheels_rc": rc, "seconds": round(time.monotonic() - t0, 2), "tarballs": tarballs,
-        "left_out": left_out,
-        "jobs": [{"name": j.name, "argv": j.argv, "status": j.status, "rc": j.rc,
-                  "timed_out": j.timed_out, "timeout_s": j.timeout_s,
-                  "start_s": round(j.start - t0, 2) if j.start else None,
-                  "seconds": round(j.end - j.start, 2) if j.end else None,
-                  "outputs": j.outputs, "notes": j.notes}
-                 for j in jobs],
-    }
+    summary = _summary(manifest, jobs, t0, deadline, parallel, (rc, wheel_s), tarballs,
+                       left_out)
     if left_out:
         say(f"left out of the tarball (over {a.max_tar_mib} MiB): {', '.join(left_out)}")
     failed = [j.name for j in jobs if j.rc != 0]
@@ -304,17 +335,9 @@ def main(argv: list[str] | None = None) -> int:
         + (f"; not: {', '.join(failed)}" if failed else ""))
     runner_log.close()
     (stage / "summary.json").write_text(json.dumps(summary, indent=1))
-    out.mkdir(parents=True, exist_ok=True)
-    for i, (tarball, files) in enumerate(zip(tarballs, bins, strict=True)):
-        with tarfile.open(out / tarball, "w:gz") as tar:
-            if i == 0:
-                tar.add(stage / "summary.json", "results/summary.json")
-            for path, name in files:
-                tar.add(path, f"results/{name}")
-    shutil.copy(stage / "summary.json", out / "summary.json")
+    _write_tarballs(a.out, stage, tarballs, bins)
     shutil.rmtree(stage, ignore_errors=True)
     return 0 if not failed else 1
-
 
 if __name__ == "__main__":
     sys.exit(main())
