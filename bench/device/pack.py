@@ -28,7 +28,6 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
-import os
 import re
 import shlex
 import shutil
@@ -37,6 +36,9 @@ import sys
 import time
 from pathlib import Path
 from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the runner beside it: stdlib only
+from run import link_or_copy  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
 MIB = 1 << 20
@@ -156,16 +158,9 @@ def _copy(src: Path, dst: Path) -> None:
     """Hard links where the file system allows (packing 50 MB costs nothing), else copies."""
     dst.parent.mkdir(parents=True, exist_ok=True)
     if src.is_dir():
-        shutil.copytree(src, dst, copy_function=_link_or_copy, symlinks=False)
+        shutil.copytree(src, dst, copy_function=link_or_copy, symlinks=False)
     else:
-        _link_or_copy(src, dst)
-
-
-def _link_or_copy(src: str | Path, dst: str | Path) -> None:
-    try:
-        os.link(src, dst)
-    except OSError:
-        shutil.copy2(src, dst)
+        link_or_copy(src, dst)
 
 
 def pack(spec_path: Path, out: Path, root: Path, wheel_dirs: list[Path], limit_mib: float,
