@@ -7,7 +7,6 @@ PY := $(VENV)/bin/python
 PIP := $(PY) -m pip
 STAMP := $(VENV)/.stamps
 NODE_EXES := w2e sim_bridge_node segmentation_node inference_node planner_node executor_node arm_adapter_node
-export GLIBC_TUNABLES ?= glibc.malloc.hugetlb=1
 
 .PHONY: install system-deps venv python-deps interfaces package activate demo test test-fast lint bench clean-ros
 

@@ -9,6 +9,10 @@
 * Training: interactions per second. Ours: a few clouds x many interactions per step (grouped
   by observation). Naive: the reference layout, one cloud per interaction (batch of 32).
 
+The process keeps freed memory (core/allocator.py) as the ``w2e`` verbs and the inference node
+do; each map is also timed in a child process with glibc's default allocator, the way the map
+ran before (issue 29: 235 ms at 10,000 x 32), and the ratio printed.
+
 Usage: python bench/bench_model.py [--points 2048 10000] [--dirs 64] [--threads 2] [--quick]
        [--map-only]   (the reference's map: --points 10000 --dirs 32 --map-only)
 """
@@ -17,12 +21,17 @@ from __future__ import annotations
 
 import argparse
 import json
+import subprocess
+import sys
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
+from w2e_ros.core.allocator import keep_freed_memory
 from w2e_ros.core.config import ModelConfig
 from w2e_ros.core.model import W2EModel
 from w2e_ros.core.training import Batch, RunningAccuracy, training_losses
@@ -150,6 +159,18 @@ def bench_train(cfg: ModelConfig, N: int, clouds: int, per_cloud: int, naive_bat
             "ratio_ours_over_naive": ours_rate / naive_rate}
 
 
+def _default_allocator_map(a: argparse.Namespace, first_level: int, N: int) -> dict:
+    """Time the same map in a fresh process with glibc's default allocator (one process cannot
+    undo its own setting)."""
+    with tempfile.NamedTemporaryFile(suffix=".json") as fh:
+        subprocess.run([sys.executable, __file__, "--map-only", "--allocator", "default",
+                        "--points", str(N), "--dirs", str(a.dirs), "--threads", str(a.threads),
+                        "--repeat", str(a.repeat), "--first-level", str(first_level),
+                        "--json", fh.name], check=True, stdout=subprocess.DEVNULL)
+        child = json.loads(Path(fh.name).read_text())[0]["map"]
+    return {"default_allocator_s": child["ours_s"], "before_s": child["ours_unchunked_s"]}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--points", type=int, nargs="+", default=[2048, 10000])
@@ -163,10 +184,16 @@ def main() -> None:
                     help="first set-abstraction centroids to compare (e.g. 512 1024)")
     ap.add_argument("--map-only", action="store_true", help="time the map, not training")
     ap.add_argument("--quick", action="store_true", help="fewer repeats and a smaller naive batch")
+    ap.add_argument("--allocator", choices=("kept", "default"), default="kept",
+                    help="keep freed memory (the verbs' and nodes' setting) or glibc's default")
+    ap.add_argument("--no-baseline", action="store_true",
+                    help="skip timing the map again with the default allocator")
     ap.add_argument("--json", default=None)
     a = ap.parse_args()
     if a.quick:
         a.repeat, a.naive_batch = 2, 8
+    if a.allocator == "kept" and not keep_freed_memory():
+        print("note: could not keep freed memory here (not glibc?); timing the default")
     torch.set_num_threads(a.threads)
     dev = "cuda" if torch.cuda.is_available() else "cpu"
     print(f"device {dev}, torch {torch.__version__}, {torch.get_num_threads()} threads")
@@ -178,6 +205,10 @@ def main() -> None:
         for N in a.points:
             m = bench_map(model, N, a.dirs, a.repeat, naive_queries=3)
             m["sa_npoint"] = list(npoint)
+            m["allocator"] = a.allocator
+            if a.allocator == "kept" and not a.no_baseline:
+                m.update(_default_allocator_map(a, s1, N))
+                m["ratio_before_over_ours"] = m["before_s"] / m["ours_s"]
             results.append({"map": m})
             print(f"[map  ] SA {npoint} N={N:5d} K={a.dirs}: {m['pairs']} pairs; encoder "
                   f"{1e3 * m['encoder_s']:.0f} ms; full map ours {1e3 * m['ours_s']:.0f} ms "
@@ -189,6 +220,11 @@ def main() -> None:
                   f"(x{m['ratio_unsplit_over_ours']:.1f}), naive "
                   f"{m['naive_per_query_s']:.3f} s/query -> {m['naive_full_map_s'] / 3600:.1f} h "
                   f"(x{m['ratio_naive_over_ours']:.0f})")
+            if "before_s" in m:
+                print(f"[map  ] SA {npoint} N={N:5d} K={a.dirs}: before (unchunked heads, default "
+                      f"allocator) {1e3 * m['before_s']:.0f} ms -> now {1e3 * m['ours_s']:.0f} ms: "
+                      f"x{m['ratio_before_over_ours']:.2f} faster; the same chunked map with "
+                      f"the default allocator {1e3 * m['default_allocator_s']:.0f} ms")
             if a.map_only:
                 continue
             t = bench_train(cfg, N, a.clouds, a.per_cloud, a.naive_batch, a.repeat)

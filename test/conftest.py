@@ -4,6 +4,12 @@ from __future__ import annotations
 
 import pytest
 
+from w2e_ros.core.allocator import keep_freed_memory
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    keep_freed_memory()  # tests that train in-process run as `w2e train` does
+
 
 @pytest.fixture
 def ros_context():

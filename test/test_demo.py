@@ -10,7 +10,6 @@ them in one place, one was never segmented, and the demo showed 0 -> 0.
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -22,8 +21,7 @@ import pytest
 def test_w2e_demo_as_typed_learns_the_novel_category(tmp_path: Path):
     w2e = Path(sys.executable).with_name("w2e")
     out = tmp_path / "demo"
-    env = dict(os.environ, GLIBC_TUNABLES="glibc.malloc.hugetlb=1")
-    r = subprocess.run([str(w2e), "demo", "--out", str(out), "--quiet-nodes"], env=env,
+    r = subprocess.run([str(w2e), "demo", "--out", str(out), "--quiet-nodes"],
                        capture_output=True, text=True, timeout=900)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     s = json.loads((out / "summary.json").read_text())

@@ -15,6 +15,7 @@ import sys
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
+from w2e_ros.core.allocator import keep_freed_memory
 from w2e_ros.core.config import (
     NETWORK_FLAGS,
     ExploreConfig,
@@ -656,27 +657,9 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-# verbs that train or run the network: glibc's default allocator makes their big, short-lived
-# tensors page-fault constantly; huge pages made batch training 2-2.7x faster
-_TENSOR_VERBS = {"train", "calibrate", "fewshot", "evaluate", "benchmark", "demo",
-                 "learnability"}
-
-
-def _reexec_with_hugepages(argv: list[str]) -> None:
-    """glibc reads GLIBC_TUNABLES only at start-up: restart the process once with it set."""
-    if os.environ.get("GLIBC_TUNABLES") or os.environ.get("W2E_NO_HUGEPAGES"):
-        return
-    if not argv or argv[0] not in _TENSOR_VERBS or not sys.platform.startswith("linux"):
-        return
-    env = dict(os.environ, GLIBC_TUNABLES="glibc.malloc.hugetlb=1")
-    os.execve(sys.executable, [sys.executable, "-m", "w2e_ros.cli", *argv], env)
-
-
 def main(argv: list[str] | None = None) -> int:
-    if argv is None:  # the console script: the process is ours to restart
-        argv = sys.argv[1:]
-        _reexec_with_hugepages(argv)
     args = build_parser().parse_args(argv)
+    keep_freed_memory()  # the verbs that run the network page-fault without it (allocator.py)
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s", datefmt="%H:%M:%S")

@@ -27,6 +27,8 @@ from collections.abc import Callable, Iterator, Sequence
 from functools import partial
 from typing import Any, TypeVar
 
+from w2e_ros.core.allocator import keep_freed_memory
+
 log = logging.getLogger("w2e.backends")
 
 T = TypeVar("T")
@@ -201,3 +203,4 @@ def _term_as_interrupt() -> Iterator[None]:
 def _worker_init() -> None:
     # one thread per worker process: the workers already use every core
     os.environ["OMP_NUM_THREADS"] = "1"
+    keep_freed_memory()  # spawned: the parent's allocator setting does not carry over

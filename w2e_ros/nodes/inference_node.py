@@ -35,6 +35,7 @@ from std_srvs.srv import Trigger
 from w2e_msgs.msg import AffordanceMap, Interaction
 from w2e_msgs.srv import PredictMaps, UpdateModel
 
+from w2e_ros.core.allocator import keep_freed_memory
 from w2e_ros.core.config import FinetuneConfig
 from w2e_ros.core.explore import Candidates, Executed, map_candidates
 from w2e_ros.core.finetune import W2EExplorer, similarity_is_balanced
@@ -500,6 +501,7 @@ class InferenceNode(Node):
 
 def main(args: list[str] | None = None) -> None:
     """Run the inference node."""
+    keep_freed_memory()  # the map's tensors stay mapped between requests (core/allocator.py)
     run_node(InferenceNode, args, threads=1)
 
 
