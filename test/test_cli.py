@@ -21,7 +21,14 @@ from w2e_ros.core.config import (
     TrainConfig,
 )
 from w2e_ros.core.settings import flag, from_namespace, leaf_fields
-from w2e_ros.experiments.config import CollectConfig, LabelCheckConfig, OracleConfig
+from w2e_ros.experiments.benchmark import METHOD_SPEC, _merge_configs, run_configs
+from w2e_ros.experiments.config import (
+    BenchmarkConfig,
+    CollectConfig,
+    LabelCheckConfig,
+    OracleConfig,
+    benchmark_methods,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCUMENTS = [ROOT / "README.md", ROOT / "bench" / "REPRODUCE.md",
@@ -210,3 +217,47 @@ def test_ceiling_checks_take_their_settings_as_flags():
     with pytest.raises(ValueError, match="radius"):
         from_namespace(OracleConfig, p.parse_args(["ceiling", "oracle", "--data", "d",
                                                    "--radii", "0"]))
+
+
+# what `w2e benchmark` built when its flags were hand-written (besides the loop's settings)
+BENCHMARK_DEFAULTS = {
+    "runs": "runs", "train_data": None, "test_data": None, "out": "results/benchmark",
+    "combos": ("cfw", "csr", "tfr", "tsw"), "seeds": (0,), "primitives": ("push", "pull"),
+    "methods": ("none", "random", "where2act", "nosim", "similarity", "oracle", "fulldata"),
+    "budgets": (1, 2, 5), "mode": "all", "categories": None, "explore_objects": 10,
+    "test_objects": 10, "validate": False, "probe": "proposal", "heatmaps": True,
+    "bootstrap": 500, "eval_points": 256, "eval_dirs": 8}
+
+
+def test_benchmark_flags_are_its_settings_one_each():
+    """`w2e benchmark` takes one flag per BenchmarkConfig setting; the flags users typed before
+    (--runs, --probe-dirs, --no-heatmaps) are those settings, the defaults unchanged."""
+    flags = {s for a in _sub("benchmark")._actions for s in a.option_strings}
+    assert {flag(n) for n in leaf_fields(BenchmarkConfig) if n not in cli._RUN_SETTINGS} <= flags
+    assert {"--runs", "--probe-dirs", "--no-heatmaps", "--validate"} <= flags
+    cfg = from_namespace(BenchmarkConfig, cli.build_parser().parse_args(["benchmark"]))
+    assert {k: getattr(cfg, k) for k in BENCHMARK_DEFAULTS} == BENCHMARK_DEFAULTS
+    assert set(benchmark_methods()) == set(METHOD_SPEC)
+    a = cli.build_parser().parse_args(["benchmark", "--runs", "r", "--no-heatmaps",
+                                       "--dirs-per-point", "4", "--points-per-object", "64"])
+    cfg = from_namespace(BenchmarkConfig, a)
+    assert (cfg.runs, cfg.heatmaps, cfg.eval_dirs, cfg.eval_points) == ("r", False, 4, 64)
+    cfg = from_namespace(BenchmarkConfig, cli.build_parser().parse_args(
+        ["benchmark", "--probe-dirs", "16"]))
+    assert cfg.eval_dirs == 16
+    with pytest.raises(SystemExit):
+        cli.build_parser().parse_args(["benchmark", "--methods", "magic"])
+
+
+def test_run_configs_stored_under_old_names_merge_under_the_new(tmp_path):
+    """A benchmark run made before the settings got one name each (runs_dir, eval_dirs,
+    eval_points) merges with a new one into one setting."""
+    old = {"runs_dir": "runs_ship", "eval_points": 256, "eval_dirs": 8, "seeds": [0]}
+    new = {"runs": "runs_ship", "probe_dirs": None, "seeds": [1]}
+    for d, c in (("a", old), ("b", new)):
+        (tmp_path / d).mkdir()
+        (tmp_path / d / "config.json").write_text(json.dumps(c))
+    made = run_configs(tmp_path / "a", [str(tmp_path / "b")])
+    assert made[str(tmp_path / "a")] == {"runs": "runs_ship", "probe_dirs": 8, "seeds": [0]}
+    merged = _merge_configs(made)
+    assert merged["runs"] == "runs_ship" and merged["seeds"] == [0, 1]

@@ -26,6 +26,7 @@ from w2e_ros.core.config import (
 from w2e_ros.core.settings import add_arguments, from_namespace
 from w2e_ros.core.strategies import STRATEGIES
 from w2e_ros.experiments.config import (
+    BenchmarkConfig,
     CollectConfig,
     LabelCheckConfig,
     LearnabilityConfig,
@@ -310,37 +311,7 @@ def _add_benchmark(sub: argparse._SubParsersAction) -> None:
         "benchmark", help="all methods x budgets x primitives over combinations and seeds",
         description="Few-shot benchmark (paper Tables 1-3): markdown tables, a metric-vs-budget "
                     "plot and heatmaps in --out. Reduce combos/seeds/objects for a quick run.")
-    p.add_argument("--runs", default="runs",
-                   help="directory of trained runs <method>_<combo>_<primitive>/model.pt")
-    p.add_argument("--train-data", default=None, help="training collection (replay)")
-    p.add_argument("--test-data", default=None, help="test-split collection (F-score)")
-    p.add_argument("--out", default="results/benchmark")
-    p.add_argument("--combos", nargs="+", default=list(combinations()), choices=combinations())
-    p.add_argument("--seeds", nargs="+", type=int, default=[0])
-    p.add_argument("--primitives", nargs="+", default=["push", "pull"])
-    p.add_argument("--methods", nargs="+", default=["none", "random", "where2act", "nosim",
-                                                    "similarity", "oracle", "fulldata"],
-                   choices=[*STRATEGIES, "fulldata"])  # = benchmark.METHOD_SPEC
-    p.add_argument("--budgets", nargs="+", type=int, default=[1, 2, 5])
-    p.add_argument("--mode", default="all", choices=["all", "per-category"])
-    p.add_argument("--probe", default="proposal", choices=["proposal", "maps"],
-                   help="sample-success candidates: the proposal distribution (what the model "
-                        "explores), or every movable point x --probe-dirs hemisphere frames "
-                        "(what the stack's manipulate scores)")
-    p.add_argument("--probe-dirs", type=int, default=None,
-                   help="sample-success frames per point (default: --dirs-per-point; the "
-                        "stack's manipulate scores 16)")
-    p.add_argument("--categories", nargs="+", default=None,
-                   help="only these novel categories (reduced run)")
-    p.add_argument("--explore-objects", type=int, default=10, help="per novel category")
-    p.add_argument("--test-objects", type=int, default=10,
-                   help="per novel category, for sample success (0: skip)")
-    _add_explore_args(p)
-    p.add_argument("--validate", action="store_true",
-                   help="judge on held-out explore instances (with --test-data from `w2e collect "
-                        "--split explore`), never on the test split: for choosing settings")
-    p.add_argument("--no-heatmaps", action="store_true")
-    p.add_argument("--bootstrap", type=int, default=500, help="resamples for the intervals")
+    add_arguments(p, BenchmarkConfig, skip=_RUN_SETTINGS)  # with the loop's settings
     p.add_argument("--summarize-only", action="store_true",
                    help="recompute benchmark.json / tables / curves from the predictions "
                         "files already in --out (e.g. after runs in parallel processes)")
@@ -363,23 +334,10 @@ def _run_benchmark(a: argparse.Namespace) -> int:
 
     import torch
 
-    from w2e_ros.experiments.benchmark import (
-        BenchmarkConfig,
-        merge_predictions,
-        run_benchmark,
-        summarize,
-    )
+    from w2e_ros.experiments.benchmark import merge_predictions, run_benchmark, summarize
 
     torch.set_num_threads(a.threads)
-    cfg = BenchmarkConfig(
-        runs_dir=a.runs, train_data=a.train_data, test_data=a.test_data, out=a.out,
-        combos=tuple(a.combos), seeds=tuple(a.seeds), primitives=tuple(a.primitives),
-        methods=tuple(a.methods), budgets=tuple(a.budgets), mode=a.mode,
-        categories=tuple(a.categories) if a.categories else None,
-        explore_objects=a.explore_objects, test_objects=a.test_objects, validate=a.validate,
-        eval_points=a.points_per_object,
-        eval_dirs=a.probe_dirs or a.dirs_per_point, probe=a.probe,
-        heatmaps=not a.no_heatmaps, bootstrap=a.bootstrap, explore=_explore_config(a))
+    cfg = from_namespace(BenchmarkConfig, a)
     if (a.merge or a.include_summary) and not a.summarize_only:
         print("w2e benchmark: --merge and --include-summary go with --summarize-only",
               file=sys.stderr)

@@ -27,7 +27,7 @@ import logging
 import time
 from collections import defaultdict
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -35,7 +35,6 @@ import numpy as np
 import torch
 
 from w2e_ros.core.categories import load_categories
-from w2e_ros.core.config import ExploreConfig
 from w2e_ros.core.data import InteractionData
 from w2e_ros.core.evaluate import (
     SuccessProbe,
@@ -49,6 +48,7 @@ from w2e_ros.core.model import W2EModel, load_model
 from w2e_ros.core.strategies import STRATEGIES, get_strategy
 from w2e_ros.core.training import replay_data
 from w2e_ros.experiments.backends import Backend, LocalBackend, resolve
+from w2e_ros.experiments.config import BENCHMARK_DROPPED, BENCHMARK_RENAMED, BenchmarkConfig
 
 log = logging.getLogger("w2e.benchmark")
 
@@ -66,30 +66,6 @@ REFERENCES = ("random", "none")  # paired differences are reported against these
 # (the ranking alone: a fit that only shifts the predictions across 0.5 does not move it)
 METRICS = ("fscore", "precision", "recall", "called", "rprecision", "auroc", "ap",
            "simcorr_auroc", "success")
-
-
-@dataclass
-class BenchmarkConfig:
-    runs_dir: str = "runs"  # holds <kind>_<combo>_<primitive>/model.pt from `w2e train`
-    train_data: str | None = None  # replay during fine-tuning
-    test_data: str | None = None  # test-split collection for the F-score
-    out: str = "results/benchmark"
-    combos: tuple[str, ...] = ("cfw", "csr", "tfr", "tsw")
-    seeds: tuple[int, ...] = (0,)
-    primitives: tuple[str, ...] = ("push", "pull")
-    methods: tuple[str, ...] = tuple(METHOD_SPEC)
-    budgets: tuple[int, ...] = (1, 2, 5)
-    mode: str = "all"  # all | per-category
-    categories: tuple[str, ...] | None = None  # restrict the novel categories (reduced runs)
-    explore_objects: int = 10  # explore instances per category
-    test_objects: int = 10  # test objects per category for sample success (0: skip)
-    validate: bool = False  # judge on held-out EXPLORE instances instead of the test split
-    eval_points: int = 256
-    eval_dirs: int = 8
-    probe: str = "proposal"  # sample success on proposal candidates | maps (the stack's)
-    heatmaps: bool = True
-    bootstrap: int = 500  # resamples for the intervals
-    explore: ExploreConfig = field(default_factory=ExploreConfig)
 
 
 def find_checkpoint(runs_dir: str | Path, kind: str, combo: str, primitive: str) -> Path | None:
@@ -137,7 +113,7 @@ def run_benchmark(cfg: BenchmarkConfig, world: Any | None = None,
     Every (primitive, combination, seed, method) run is one job of ``backend`` (default:
     one after the other in this process). The collections go to the jobs through
     ``backend.put`` (Ray: the object store, once per host); checkpoints are read from
-    ``cfg.runs_dir``, which must be the same path on every host. Results come back here and
+    ``cfg.runs``, which must be the same path on every host. Results come back here and
     every file is written by this process."""
     from w2e_ros.experiments.sim_world import SimWorld
 
@@ -235,10 +211,10 @@ def _run_one(run: _Run) -> dict[str, Any]:
     world, novel, ev = _group(cfg, prim, combo, resolve(run.test))
     max_budget = max(cfg.budgets)
     kind, strat_name = METHOD_SPEC[method]
-    ckpt = find_checkpoint(cfg.runs_dir, kind, combo, prim)
+    ckpt = find_checkpoint(cfg.runs, kind, combo, prim)
     if ckpt is None:
         return {"skipped": f"skip {method} {combo} {prim}: no {kind} checkpoint in "
-                           f"{cfg.runs_dir} (w2e train --method {kind} --combo {combo} "
+                           f"{cfg.runs} (w2e train --method {kind} --combo {combo} "
                            f"--primitive {prim})"}
     t0 = time.perf_counter()
     torch.manual_seed(seed)
@@ -516,8 +492,15 @@ def run_configs(out: str | Path, sources: Sequence[str | Path] = ()) -> dict[str
     for src in [str(out), *map(str, sources)]:
         d = Path(src.partition(":")[0])
         if (d / "config.json").exists():
-            found[str(d)] = json.loads((d / "config.json").read_text())
+            found[str(d)] = _current_names(json.loads((d / "config.json").read_text()))
     return found
+
+
+def _current_names(made: dict) -> dict:
+    """A stored run configuration under today's setting names (BENCHMARK_RENAMED), so runs
+    made before a rename merge into one setting."""
+    return {BENCHMARK_RENAMED.get(k, k): v for k, v in made.items()
+            if k not in BENCHMARK_DROPPED}
 
 
 def summarize(out: str | Path, cfg: BenchmarkConfig,

@@ -6,8 +6,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from w2e_ros.core.categories import SPLITS
-from w2e_ros.core.config import LEARNABILITY_SELECTIONS, ExploreConfig
+from w2e_ros.core.config import LEARNABILITY_SELECTIONS, ExploreConfig, combinations
 from w2e_ros.core.settings import REQUIRED, setting
+from w2e_ros.core.strategies import STRATEGIES
 
 
 @dataclass
@@ -107,3 +108,73 @@ class LearnabilityConfig:
     references: tuple[str, ...] = setting((), "other checkpoints drawn as lines (e.g. the "
                                           "fulldata model)")
     explore: ExploreConfig = field(default_factory=ExploreConfig)
+
+
+def benchmark_methods() -> tuple[str, ...]:
+    """Every method ``w2e benchmark`` can run: each strategy with our model, and Full-data
+    (w2e_ros.experiments.benchmark.METHOD_SPEC maps them to a model and a rule)."""
+    return (*STRATEGIES, "fulldata")
+
+
+BENCHMARK_RENAMED = {"runs_dir": "runs", "eval_dirs": "probe_dirs"}
+"""Old name -> setting, for the run configurations earlier benchmarks stored (read when runs
+are merged). ``eval_points`` was always the exploration's ``points_per_object`` and is dropped."""
+BENCHMARK_DROPPED = ("eval_points",)
+
+
+@dataclass
+class BenchmarkConfig:
+    """``w2e benchmark``: every method x budget x primitive over combinations and seeds. The
+    exploration settings (``explore``) are the few-shot loop's own, but its budget, seed and
+    snapshots, which the benchmark sets per run (the largest budget, each seed, every budget)."""
+
+    runs: str = setting("runs", "directory of trained runs <method>_<combo>_<primitive>/model.pt")
+    train_data: str | None = setting(None, "training collection (replay)")
+    test_data: str | None = setting(None, "test-split collection (F-score)")
+    out: str = setting("results/benchmark", "output directory")
+    combos: tuple[str, ...] = setting(("cfw", "csr", "tfr", "tsw"), "training combinations",
+                                      choices=combinations)
+    seeds: tuple[int, ...] = setting((0,), "exploration seeds (one run each)")
+    primitives: tuple[str, ...] = setting(("push", "pull"), "primitives",
+                                          choices=("push", "pull"))
+    methods: tuple[str, ...] = setting(
+        ("none", "random", "where2act", "nosim", "similarity", "oracle", "fulldata"),
+        "methods (the paper's, and the other strategies by name)", choices=benchmark_methods)
+    budgets: tuple[int, ...] = setting((1, 2, 5), "interaction budgets per object evaluated "
+                                       "(one run per method and seed up to the largest)", min=1)
+    mode: str = setting("all", "all novel categories in one run, or one run per category",
+                        choices=("all", "per-category"))
+    categories: tuple[str, ...] | None = setting(None, "only these novel categories (reduced "
+                                                 "run)")
+    explore_objects: int = setting(10, "explore instances per novel category", min=1)
+    test_objects: int = setting(10, "test objects per novel category, for sample success "
+                                "(0: skip)", min=0)
+    validate: bool = setting(False, "judge on held-out explore instances (with --test-data from "
+                             "`w2e collect --split explore`), never on the test split: for "
+                             "choosing settings")
+    probe: str = setting("proposal", "sample-success candidates: the proposal distribution (what "
+                         "the model explores), or every movable point x --probe-dirs hemisphere "
+                         "frames (what the stack's manipulate scores)",
+                         choices=("proposal", "maps"))
+    probe_dirs: int | None = setting(None, "sample-success frames per point (default: "
+                                     "--dirs-per-point; the stack's manipulate scores 16)",
+                                     min=1)
+    heatmaps: bool = setting(True, "write heatmaps of the similarity runs")
+    bootstrap: int = setting(500, "resamples for the intervals", min=1)
+    explore: ExploreConfig = field(default_factory=ExploreConfig)
+
+    def __post_init__(self) -> None:
+        unknown = set(self.methods) - set(benchmark_methods())
+        if unknown:
+            raise ValueError(f"unknown methods {sorted(unknown)}; known: "
+                             f"{', '.join(benchmark_methods())}")
+
+    @property
+    def eval_points(self) -> int:
+        """Points per test object the success probe scores: the exploration's."""
+        return self.explore.points_per_object
+
+    @property
+    def eval_dirs(self) -> int:
+        return self.probe_dirs or self.explore.dirs_per_point
+
