@@ -7,8 +7,10 @@ and bring back one tarball whose summary says which job finished and which timed
 
 from __future__ import annotations
 
+import ctypes
 import importlib.util
 import json
+import shutil
 import subprocess
 import sys
 import tarfile
@@ -178,3 +180,56 @@ def test_outputs_past_one_tarball_spill_into_more_parts_then_are_named(tmp_path)
     assert left == [] and "output gone missing" in job.notes
     bins, left = run.collect_files([job], work, logs, limit=130, parts=1)
     assert left == ["outputs/r2/model.pt", "outputs/r3/model.pt"]
+
+
+def _fake_sapien(folder: Path) -> Path:
+    """A wheel laid out as SAPIEN's, with the parts the slim recipe drops or stubs."""
+    folder.mkdir(parents=True, exist_ok=True)
+    cp = f"cp{sys.version_info.major}{sys.version_info.minor}"  # pip installs it here
+    path = folder / f"sapien-3.0.3-{cp}-{cp}-manylinux_2_28_x86_64.whl"
+    info, oidn = "sapien-3.0.3.dist-info", "sapien/oidn_library/"
+    files = {"sapien/__init__.py": "KEPT = True\n", "sapien/include/physx/PxPhysics.h": "x" * 5000,
+             "sapien/sensor/__init__.py": "", "sapien/sensor/assets/patterns/d415.png": "p" * 9000,
+             "sapien/vulkan_library/libvulkan.1.3.290.dylib": "m" * 100,
+             "sapien/vulkan_library/libvulkan.so.1.3.224": "kept",
+             oidn + "libOpenImageDenoise.so.2.0.1": "not an elf", oidn +
+             "libOpenImageDenoise_core.so.2.0.1": "c" * 20000,
+             oidn + "libOpenImageDenoise_device_cuda.so.2.0.1": "g" * 300,
+             f"{info}/METADATA": "Metadata-Version: 2.1\nName: sapien\nVersion: 3.0.3\n",
+             f"{info}/WHEEL": "Wheel-Version: 1.0\nRoot-Is-Purelib: false\n"
+                              f"Tag: {cp}-{cp}-manylinux_2_28_x86_64\n"}
+    with zipfile.ZipFile(path, "w") as z:
+        for name, text in files.items():
+            z.writestr(name, text)
+        z.writestr(f"{info}/RECORD", "".join(f"{n},,\n" for n in files) + f"{info}/RECORD,,\n")
+    return path
+
+
+@pytest.mark.skipif(not (shutil.which("cc") or shutil.which("gcc")), reason="no C compiler")
+def test_slim_sapien_drops_what_never_loads_and_stubs_the_denoiser(tmp_path):
+    """The slim wheel keeps the package, drops headers, sensor patterns, the macOS loader and
+    OIDN's CUDA device, replaces the denoiser by shared libraries of the same sonames that
+    export what libsvulkan2 imports, and its RECORD matches what is in it (pip installs it)."""
+    slim = _module("slim")
+    src = _fake_sapien(tmp_path / "whl")
+    out = slim.slimmed(src, tmp_path / "whl" / "slim")
+    names = set(zipfile.ZipFile(out).namelist())
+    assert "sapien/__init__.py" in names and "sapien/vulkan_library/libvulkan.so.1.3.224" in names
+    assert not any(n.startswith(("sapien/include/", "sapien/sensor/assets/")) or
+                   n.endswith(".dylib") or "device_cuda" in n for n in names)
+    target = tmp_path / "site"
+    subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "--no-index", "-q",
+                    "--target", str(target), str(out)], check=True, timeout=120)
+    lib = target / "sapien" / "oidn_library"
+    stub = subprocess.run(["nm", "-D", "--defined-only", str(lib / "libOpenImageDenoise.so.2.0.1")],
+                          capture_output=True, text=True, check=True).stdout
+    for fn in ("oidnNewCUDADevice", "oidnNewFilter", "oidnExecuteFilter", "oidnGetDeviceError"):
+        assert f" T {fn}" in stub, fn
+    core = ctypes.CDLL(str(lib / "libOpenImageDenoise_core.so.2.0.1"), ctypes.RTLD_LOCAL)
+    assert core is not None  # loads as _oidn_tricks loads it, before the API library
+    api = ctypes.CDLL(str(lib / "libOpenImageDenoise.so.2.0.1"), ctypes.RTLD_LOCAL)
+    api.oidnNewCUDADevice.restype = ctypes.c_void_p
+    assert api.oidnNewCUDADevice(None, None, 0) is None  # no device: SAPIEN reports, not crashes
+    assert slim.slimmed(src, tmp_path / "whl" / "slim") == out  # built once
+    with pytest.raises(slim.SlimError, match="no slimming recipe"):
+        slim.slimmed(_wheel(tmp_path / "other"), tmp_path / "other" / "slim")

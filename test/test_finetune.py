@@ -133,6 +133,20 @@ def test_replay_rows_are_distinct_training_interactions_with_their_roles(replay)
     np.testing.assert_array_equal(r.key, np.arange(len(r)))  # own running-accuracy counters
 
 
+def test_a_replay_pack_is_replayed_whole(replay):
+    """A replay pack (shipped beside a checkpoint, or passed as the benchmark's training data)
+    is already the sample: every row of it, not replay_fraction of it again."""
+    import dataclasses
+
+    from w2e_ros.core.training import REPLAY_PACK
+
+    pack = dataclasses.replace(replay, meta={**replay.meta, REPLAY_PACK: {"fraction": 0.01}})
+    assert len(_explorer("heads", pack, replay_fraction=0.2).replay_rows) == \
+        replay.num_interactions
+    assert len(_explorer("heads", replay, replay_fraction=0.2).replay_rows) < \
+        replay.num_interactions
+
+
 def test_update_adds_executed_interactions_and_the_replay_keeps_training_behaviour(novel,
                                                                                   replay):
     from w2e_ros.core.explore import Candidates, Executed

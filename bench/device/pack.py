@@ -12,6 +12,7 @@ A spec::
 
     {"name": "train_pull", "parallel": 7, "deadline_s": 540,
      "wheels": ["transforms3d==0.4.2"],       # names (optionally ==version) found in --wheels
+     "slim": ["sapien"],                      # wheels to slim first (bench/device/slim.py)
      "inputs": ["data/train/cfw"],            # files or folders, relative to --root
      "env": {"W2E_X": "1"},                   # for every job
      "jobs": [{"name": "s{seed}", "matrix": {"seed": [0, 1]},
@@ -39,6 +40,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the runner beside it: stdlib only
 from run import link_or_copy  # noqa: E402
+from slim import SlimError, slimmed  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
 MIB = 1 << 20
@@ -189,6 +191,13 @@ def pack(spec_path: Path, out: Path, root: Path, wheel_dirs: list[Path], limit_m
             raise PackError(f"wheel {req}: none for CPython {DEVICE_PYTHON} x86-64 in {where} "
                             f"(--download runs: {fetch})")
         wheels.append(whl)
+    slim = {_norm(n) for n in spec.get("slim", [])}
+    full = {w.name: w.stat().st_size for w in wheels}
+    try:  # the slim wheels are built once, beside the wheels they come from
+        wheels = [slimmed(w, w.parent / "slim") if _norm(w.name.split("-")[0]) in slim else w
+                  for w in wheels]
+    except SlimError as e:
+        raise PackError(str(e)) from None
     sizes = {rel: tree_bytes(root / rel) for rel in inputs}
     sizes.update({f"wheels/{w.name}": w.stat().st_size for w in wheels})
     pack_bytes = sum(sizes.values())
@@ -214,6 +223,8 @@ def pack(spec_path: Path, out: Path, root: Path, wheel_dirs: list[Path], limit_m
         "parallel": spec.get("parallel"), "deadline_s": spec.get("deadline_s"),
         "env": {k: str(v) for k, v in spec.get("env", {}).items()},
         "inputs": inputs, "wheels": [w.name for w in wheels], "jobs": jobs,
+        "slimmed": {w.name: {"from_bytes": full[w.name], "bytes": w.stat().st_size}
+                    for w in wheels if w.parent.name == "slim"},
         "bytes": {"pack": pack_bytes, "working_tree": tree, "limit": limit},
     }
     (out / MARKER).write_text(json.dumps(manifest, indent=1))

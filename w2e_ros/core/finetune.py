@@ -39,7 +39,7 @@ from w2e_ros.core.model import W2EModel
 from w2e_ros.core.predict import FEATURES, FeatureCache, cloud_key, encoder_key
 from w2e_ros.core.strategies import Scored
 from w2e_ros.core.threads import torch_threads
-from w2e_ros.core.training import RunningAccuracy, make_deterministic
+from w2e_ros.core.training import REPLAY_PACK, RunningAccuracy, make_deterministic
 
 log = logging.getLogger("w2e.finetune")
 
@@ -171,8 +171,10 @@ class W2EExplorer:
         if self.fit_log:
             raise RuntimeError("attach the replay before the first fit")
         cfg = self.cfg
-        if replay.num_interactions and cfg.replay_fraction > 0:
-            n = max(1, int(round(cfg.replay_fraction * replay.num_interactions)))
+        # a replay pack (shipped beside a checkpoint) is already the sample: all of it
+        fraction = 1.0 if REPLAY_PACK in replay.meta else cfg.replay_fraction
+        if replay.num_interactions and fraction > 0:
+            n = max(1, int(round(fraction * replay.num_interactions)))
             if self.heads_only:  # distinct interactions from as many clouds as possible
                 rows = np.sort(self.rng.choice(replay.num_interactions,
                                                size=min(n, replay.num_interactions),

@@ -69,14 +69,17 @@ METRICS = ("fscore", "precision", "recall", "called", "rprecision", "auroc", "ap
 
 
 def find_checkpoint(runs_dir: str | Path, kind: str, combo: str, primitive: str) -> Path | None:
-    """``runs/<kind>_<combo>_<primitive>/model.pt``; Full-data does not depend on the
-    combination, so any ``fulldata_*_<primitive>`` run serves."""
+    """``runs/<kind>_<combo>_<primitive>/model.pt`` (w2e train's runs) or
+    ``runs/<kind>_<combo>_<primitive>.pt`` (the shipped ``checkpoints/``); Full-data does not
+    depend on the combination, so any ``fulldata_*_<primitive>`` model serves."""
     runs = Path(runs_dir)
-    p = runs / f"{kind}_{combo}_{primitive}" / "model.pt"
-    if p.exists():
-        return p
+    for p in (runs / f"{kind}_{combo}_{primitive}" / "model.pt",
+              runs / f"{kind}_{combo}_{primitive}.pt"):
+        if p.exists():
+            return p
     if kind == "fulldata":
-        found = sorted(runs.glob(f"fulldata_*_{primitive}/model.pt"))
+        found = sorted([*runs.glob(f"fulldata_*_{primitive}/model.pt"),
+                        *runs.glob(f"fulldata_*_{primitive}.pt")])
         return found[0] if found else None
     return None
 

@@ -206,22 +206,20 @@ class InferenceNode(Node):
         ``background`` (tens of seconds for the shipped pack on a CPU: the services must not
         wait for it), else before returning."""
         from w2e_ros.core.data import InteractionData
-        from w2e_ros.core.training import REPLAY_PACK, load_training_data_from, method_categories
+        from w2e_ros.core.training import load_training_data_from, method_categories
 
         s = self.settings
         path = self._checkpoint(primitive)
         model, meta = load_model(path, self.device)
         method, combo = str(meta.get("method", "w2e")), str(meta.get("combo", s.combo))
         aff_cats, sim_cats = method_categories(method, combo)
-        replay, fraction = None, s.replay_fraction
+        replay = None
         source = self._replay_source()
-        if source is not None:
+        if source is not None:  # a replay pack is replayed whole (W2EExplorer.attach_replay)
             data = InteractionData.load(source)
             replay = load_training_data_from(data, method, combo, primitive, source=str(source))
-            if REPLAY_PACK in data.meta:  # already the sample: replay every row of it
-                fraction = 1.0
         cfg = FinetuneConfig(finetune=s.finetune, finetune_steps=s.finetune_steps,
-                             finetune_lr=s.finetune_lr, replay_fraction=fraction)
+                             finetune_lr=s.finetune_lr, replay_fraction=s.replay_fraction)
         explorer = W2EExplorer(model, cfg, aff_categories=aff_cats, sim_categories=sim_cats,
                                train_similarity=True, seed=s.seed,
                                balanced_similarity=similarity_is_balanced(meta))
