@@ -40,7 +40,7 @@ def test_learnability_curves_rise_with_the_explored_interactions(setup):
     cfg = LearnabilityConfig(
         model=str(d / "model.pt"), pool_data=str(d / "pool"), test_data=str(d / "test"),
         out=str(d / "out"), sizes=(0, 12, 1000), seeds=(0,), selections=("random", "oracle"),
-        categories=NOVEL,
+        categories=NOVEL, references=(str(d / "model.pt"),),  # the base, drawn as a line
         # no prior: 60 steps must fit the synthetic pool (the default prior holds a fit near
         # the trained weights on purpose, test_finetune checks it)
         explore=ExploreConfig(finetuning=FinetuneConfig(
@@ -71,6 +71,9 @@ def test_learnability_curves_rise_with_the_explored_interactions(setup):
     table = (d / "out" / "learnability.md").read_text()
     diff = 100 * (rows[4]["auroc"] - rows[1]["auroc"])
     assert "| oracle | 12 | 1 | " in table and f"{diff:+.1f} ± 0.0" in table
+    # a reference model's row: its metrics, a dash where it picked nothing
+    ref = next(line for line in table.splitlines() if "(reference)" in line)
+    assert f"{100 * base['auroc']:.1f}" in ref and ref.rstrip(" |").endswith("–")
 
 
 def test_learnability_refuses_an_empty_pool(setup):

@@ -304,8 +304,8 @@ def _summarize(rows: list[dict], refs: dict, cfg: LearnabilityConfig, prim: str)
                 + " |")
         summary["curves"][sel] = {str(k): v for k, v in curve.items()}
     for name, v in refs.items():
-        lines.append(f"| {name} (reference) | - | " + " | ".join(
-            f"{100 * v[m]:.1f}" for m in metrics) + " |")
+        lines.append(f"| {name} (reference) | - | " + " | ".join(  # picked_*: no picks
+            f"{100 * v[m]:.1f}" if m in v else "–" for m in metrics) + " |")
     lines += _paired_lines(rows, cfg.selections)
     (out / "learnability.md").write_text("\n".join(lines) + "\n")
     (out / "learnability.json").write_text(json.dumps(summary, indent=1))
