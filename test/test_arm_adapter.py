@@ -68,10 +68,12 @@ class Robot:
     """The adapter process and, here, a client with the controller's two ends."""
 
     def __init__(self, tmp, *params: str, block_piece: int | None = None,
-                 controller: bool = True) -> None:
+                 controller: bool = True, states: bool = True) -> None:
         """``block_piece``: that trajectory (0: the first) takes the arm half way and stops
-        there, as a part that does not give stops it; ``controller``: False, none listens."""
+        there, as a part that does not give stops it; ``controller``: False, none listens;
+        ``states``: False, no joint_states are published (no arm)."""
         domain = pick_domain_id(salt=29)
+        self.started = time.monotonic()
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "w2e_ros.nodes.arm_adapter_node", "--ros-args",
              *[a for p in (BASE_AT_ORIGIN, *params) for a in ("-p", p)]],
@@ -94,7 +96,8 @@ class Robot:
                                       self.planned.append, LATCHED_QOS)
         self.node.create_subscription(Path, "planned_path", self.paths.append, LATCHED_QOS)
         self.states = self.node.create_publisher(JointState, "joint_states", 10)
-        self.node.create_timer(0.05, self._publish_state)
+        if states:
+            self.node.create_timer(0.05, self._publish_state)
         self.client = ActionClient(self.node, FollowWaypoints, "follow_waypoints")
         self.exe = MultiThreadedExecutor(num_threads=2, context=self.ctx)
         self.exe.add_node(self.node)
@@ -280,3 +283,25 @@ def test_executor_judging_by_joints_refuses_a_robot_side_without_object_joints()
         for n in (arm, executor_node, client_node):
             n.destroy_node()
         rclpy.try_shutdown(context=ctx)
+
+
+def test_without_an_arm_the_first_goal_waits_out_start_up_then_goals_fail_fast(tmp_path):
+    """No joint_states at all: the first goal after start-up waits out the start-up grace
+    (discovery can take seconds on a loaded machine, and a goal sent at once must not be
+    refused for it), later ones are refused after joint_state_timeout_s, naming the wait."""
+    from w2e_ros.nodes.arm_adapter_node import STARTUP_GRACE_S
+
+    robot = Robot(tmp_path, "dry_run:=false", "joint_state_timeout_s:=0.5", states=False)
+    try:
+        res = robot.follow(REACHABLE)
+        first = time.monotonic() - robot.started
+        assert not res.valid and "where is the arm?" in res.message, res.message
+        assert first >= STARTUP_GRACE_S - 1.0, first  # the adapter started after robot.started
+        t = time.monotonic()
+        res = robot.follow(REACHABLE)
+        assert "where is the arm?" in res.message and "within 0.5 s" in res.message, res.message
+        assert time.monotonic() - t < 5.0
+        assert not robot.commanded  # nothing was sent to a controller
+    finally:
+        robot.close()
+

@@ -59,6 +59,7 @@ STALL_MOTION = 0.002  # rad: largest joint motion over STALL_S of an arm that st
 NOT_MOVED = 0.01  # rad: an arm that moved less did not run the trajectory at all
 HOLD_S = 0.1  # s: time_from_start of the hold command sent after a blocked piece
 BLOCKED = "blocked"  # the kind of failure that is a trial (valid, not reached)
+STARTUP_GRACE_S = 10.0  # s after start-up the first goal may wait for the first joint_states
 
 
 @dataclass
@@ -135,6 +136,7 @@ class ArmAdapterNode(Node):
         self._state_count = 0  # joint_states messages received (a stale state is told apart)
         self._fingers: np.ndarray | None = None  # latest finger positions (gripper_topic)
         self._state_cv = threading.Condition()
+        self._started = time.monotonic()
         self._last_end: np.ndarray | None = None  # dry run: where the last plan left the arm
         self._busy = threading.Lock()  # one arm: one trajectory at a time
         io = ReentrantCallbackGroup()  # delivered while a goal waits
@@ -198,6 +200,10 @@ class ArmAdapterNode(Node):
 
     def _joints(self, timeout: float) -> np.ndarray | None:
         with self._state_cv:
+            if self._state is None and timeout > 0 and not self.settings.dry_run:
+                # nothing heard from the arm yet: a goal sent right after bring-up may arrive
+                # before discovery has matched joint_states (seconds on a loaded machine)
+                timeout = max(timeout, self._started + STARTUP_GRACE_S - time.monotonic())
             self._state_cv.wait_for(lambda: self._state is not None, timeout)
             return None if self._state is None else self._state.copy()
 
@@ -218,10 +224,12 @@ class ArmAdapterNode(Node):
             except ValueError as err:
                 return refuse(str(err))
             s = self.settings
+            waited = time.monotonic()
             q0 = self._joints(s.joint_state_timeout_s)
             if q0 is None and not s.dry_run:
+                waited = time.monotonic() - waited
                 return refuse(f"no joint_states with {', '.join(self.joint_names)} within "
-                              f"{s.joint_state_timeout_s:.1f} s: where is the arm?")
+                              f"{waited:.1f} s: where is the arm?")
             if q0 is None:
                 q0 = self._last_end if self._last_end is not None else kin.Q_READY
             t0 = time.perf_counter()
