@@ -104,8 +104,9 @@ class ArmAdapterSettings:
                                  min=0.001)
     gripper_timeout_s: float = param(10.0, "longest wait for one gripper command", min=0.0)
     joint_state_timeout_s: float = param(2.0, "longest wait for joint_states (the start of a "
-                                         "plan; dry run without them: the last plan's end)",
-                                         min=0.0)
+                                         "plan; dry run without them: the last plan's end; "
+                                         f"the first goal after start-up may wait up to "
+                                         f"{STARTUP_GRACE_S:g} s for discovery)", min=0.0)
     goal_tolerance: float = param(0.05, "largest joint error (rad) on joint_states at the end "
                                   "of each piece", min=0.0)
     settle_s: float = param(1.0, "how long after a piece's planned duration the arm may still "
