@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 
+from w2e_ros.core.primitives import BASE_PRIMITIVES
 from w2e_ros.core.settings import from_dict, setting
 
 NETWORK_FLAGS = ("head_layers", "xyz_features", "sa_npoint", "sa_radius", "local_k")
@@ -103,7 +104,7 @@ class TrainConfig:
                           "fulldata: affordance on all 14", choices=METHODS)
     combo: str = setting("cfw", "training combination (config/categories.yaml)",
                          choices=combinations)
-    primitive: str = setting("push", "the primitive the model learns", choices=("push", "pull"))
+    primitive: str = setting("push", "the primitive the model learns", choices=BASE_PRIMITIVES)
     steps: int = setting(6000, "most optimizer steps (validation may stop the run earlier)")
     clouds: int = setting(4, "clouds (encoder passes, the expensive part) per batch; under "
                           "torchrun per process")

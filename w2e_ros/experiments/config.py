@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 
 from w2e_ros.core.categories import SPLITS
 from w2e_ros.core.config import LEARNABILITY_SELECTIONS, ExploreConfig, combinations
+from w2e_ros.core.primitives import BASE_PRIMITIVES
 from w2e_ros.core.settings import REQUIRED, setting
 from w2e_ros.core.strategies import STRATEGIES
 
@@ -48,7 +49,7 @@ class LabelCheckConfig:
     out: str = setting("results/ceiling_labels", "output directory")
     trials: int = setting(200, "valid trials per primitive", min=1)
     primitives: tuple[str, ...] = setting(("push", "pull"), "primitives to replay",
-                                          choices=("push", "pull"))
+                                          choices=BASE_PRIMITIVES)
     positive_share: float = setting(0.5, "share of the replayed trials that are successes, "
                                     "where there are enough", min=0.0, max=1.0)
     seed: int = setting(0, "seed of the trials drawn and the perturbations")
@@ -63,7 +64,7 @@ class OracleConfig:
     out: str = setting("results/ceiling_oracle", "output directory")
     trials: int = setting(200, "valid trials per primitive", min=1)
     primitives: tuple[str, ...] = setting(("push", "pull"), "primitives to ask about",
-                                          choices=("push", "pull"))
+                                          choices=BASE_PRIMITIVES)
     radii: tuple[float, ...] = setting((0.003, 0.010, 0.023), "disc radii along the surface "
                                        "(m); 0.023 is the point spacing of 2,048-point clouds")
     samples: int = setting(8, "perturbed contacts per trial and radius", min=1)
@@ -136,7 +137,7 @@ class BenchmarkConfig:
                                       choices=combinations)
     seeds: tuple[int, ...] = setting((0,), "exploration seeds (one run each)")
     primitives: tuple[str, ...] = setting(("push", "pull"), "primitives",
-                                          choices=("push", "pull"))
+                                          choices=BASE_PRIMITIVES)
     methods: tuple[str, ...] = setting(
         ("none", "random", "where2act", "nosim", "similarity", "oracle", "fulldata"),
         "methods (the paper's, and the other strategies by name)", choices=benchmark_methods)
