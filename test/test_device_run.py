@@ -142,6 +142,11 @@ def test_tiny_pack_runs_every_job_as_its_own_process_and_stops_the_overrun(root,
     assert 3 <= o["seconds"] < 10  # its own 3 s limit, not the global deadline
     assert "sleeping" in overrun_log and "results/outputs/overrun.txt" in names  # kept
     assert jobs["probe"]["rc"] == 0 and "probe from a travelled wheel" in probe_log
+    # the trainings read what the setup job made there: it ran, and ran before them
+    (prep,) = summary["setup"]
+    assert prep["name"] == "prepare" and prep["rc"] == 0 and prep["status"] == "done"
+    assert prep["start_s"] + prep["seconds"] <= jobs["train_s0"]["start_s"]
+    assert "results/logs/prepare.log" in names
     assert summary["wheels_rc"] == 0 and summary["left_out"] == []
     assert "results/logs/_runner.log" in names
 
@@ -164,6 +169,42 @@ def test_the_global_deadline_stops_a_job_and_leaves_the_queue_unstarted(tmp_path
     jobs = {j["name"]: j for j in json.loads((res / "summary.json").read_text())["jobs"]}
     assert jobs["first"]["timed_out"] and 2.5 <= jobs["first"]["seconds"] < 6
     assert jobs["second"]["status"] == "not_started" and jobs["second"]["rc"] is None
+
+
+def test_a_failed_setup_job_starts_no_job_and_says_why(tmp_path):
+    """A setup job (a collection made on the machine) that fails: the jobs that would read
+    its output are skipped, not run on nothing, and the summary names the setup job."""
+    pack = tmp_path / "pack"
+    pack.mkdir()
+    (pack / "pack.json").write_text(json.dumps({
+        "name": "setup", "inputs": [], "wheels": [], "env": {},
+        "setup": [{"name": "collect", "argv": ["python", "-c", "raise SystemExit(3)"],
+                   "outputs": []}],
+        "jobs": [{"name": "bench", "argv": ["python", "-c", "open('ran', 'w')"],
+                  "outputs": ["ran"]}]}))
+    res = tmp_path / "OUT"
+    r = subprocess.run([sys.executable, str(DEVICE / "run.py"), "--pack", str(pack),
+                        "--out", str(res), "--deadline-s", "20", "--work",
+                        str(tmp_path / "work")], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 1 and "setup failed (collect)" in r.stdout
+    summary = json.loads((res / "summary.json").read_text())
+    assert summary["setup"][0]["rc"] == 3
+    (bench,) = summary["jobs"]
+    assert bench["status"] == "skipped" and bench["rc"] is None
+    assert "collect" in bench["notes"][0] and not (tmp_path / "work" / "ran").exists()
+    pack_mod = _module("pack")
+    with pytest.raises(pack_mod.PackError, match="setup and job names repeat"):
+        pack_mod.pack(_spec_with_setup_named(tmp_path, "train_s{seed}"), tmp_path / "p",
+                      tmp_path, [], 64, tree=0)
+
+
+def _spec_with_setup_named(tmp_path: Path, name: str) -> Path:
+    spec = json.loads((DEVICE / "tiny.json").read_text())
+    spec["inputs"] = []
+    spec["setup"] = [{"name": name, "matrix": {"seed": [0]}, "argv": "true"}]
+    path = tmp_path / "clash.json"
+    path.write_text(json.dumps(spec))
+    return path
 
 
 def test_outputs_past_one_tarball_spill_into_more_parts_then_are_named(tmp_path):

@@ -1,7 +1,8 @@
 """The prepared GPU-machine run on this CPU in seconds: pack ``tiny.json``, run it, show.
 
-Before spending device minutes: the tiny spec's two 2-step trainings on a synthetic
-collection (test/synthetic.py) and one job that sleeps past its 3 s limit on purpose go
+Before spending device minutes: the tiny spec's setup job (it makes the trainings' data
+from the travelled synthetic collection, test/synthetic.py), two 2-step trainings on it and
+one job that sleeps past its 3 s limit on purpose go
 through the same pack.py and run.py as a real spec; the summary shows rc 0 for the
 trainings and the overrun stopped and marked timed out. test/test_device_run.py asserts it.
 
@@ -44,7 +45,8 @@ def main(argv: list[str] | None = None) -> int:
                         "--work", str(base / "work"), "--site", str(base / "site")])
         with tarfile.open(base / "OUT" / "results.tar.gz") as tar:
             print("\n".join(sorted(tar.getnames())))
-        for j in json.loads((base / "OUT" / "summary.json").read_text())["jobs"]:
+        summary = json.loads((base / "OUT" / "summary.json").read_text())
+        for j in summary.get("setup", []) + summary["jobs"]:
             print(f"{j['name']:10s} {j['status']:10s} rc {j['rc']} {j['seconds']} s")
     return 0
 

@@ -15,6 +15,7 @@ A spec::
      "slim": ["sapien"],                      # wheels to slim first (bench/device/slim.py)
      "inputs": ["data/train/cfw"],            # files or folders, relative to --root
      "env": {"W2E_X": "1"},                   # for every job
+     "setup": [{"name": "testset", "argv": "w2e collect --out data/t ..."}],  # first, all rc 0
      "jobs": [{"name": "s{seed}", "matrix": {"seed": [0, 1]},
                "argv": "w2e train --data data/train/cfw --seed {seed} --out runs/s{seed}",
                "outputs": ["runs/s{seed}"], "timeout_s": 500}]}
@@ -55,13 +56,15 @@ class PackError(Exception):
     """A pack that cannot be made or would not fit: one line for the user."""
 
 
-def expand_jobs(spec: dict[str, Any]) -> list[dict[str, Any]]:
+def expand_jobs(spec: dict[str, Any], key: str = "jobs") -> list[dict[str, Any]]:
     """One concrete job per matrix point: ``{key}`` in name, argv and outputs filled in.
 
     Every (method, seed) becomes its own process on the machine, so the expansion happens
-    here, once, and the runner never interprets a spec."""
+    here, once, and the runner never interprets a spec. ``key`` picks the phase: ``jobs``,
+    or ``setup`` (what the jobs need made on the machine, e.g. a collection too large to
+    travel; the runner runs it first and starts the jobs only if every setup job ends rc 0)."""
     jobs: list[dict[str, Any]] = []
-    for job in spec.get("jobs", []):
+    for job in spec.get(key, []):
         matrix = job.get("matrix", {})
         keys = list(matrix)
         for values in itertools.product(*(matrix[k] for k in keys)) if keys else [()]:
@@ -172,6 +175,10 @@ def pack(spec_path: Path, out: Path, root: Path, wheel_dirs: list[Path], limit_m
     jobs = expand_jobs(spec)
     if not jobs:
         raise PackError(f"{spec_path}: no jobs")
+    setup = expand_jobs(spec, "setup")
+    clash = sorted({j["name"] for j in setup} & {j["name"] for j in jobs})
+    if clash:
+        raise PackError(f"setup and job names repeat: {', '.join(clash)}")
     inputs = [str(Path(p)) for p in spec.get("inputs", [])]
     for rel in inputs:
         if Path(rel).is_absolute() or ".." in Path(rel).parts:
@@ -222,7 +229,7 @@ def pack(spec_path: Path, out: Path, root: Path, wheel_dirs: list[Path], limit_m
         "created": time.strftime("%Y-%m-%dT%H:%M:%S"), "commit": _commit(),
         "parallel": spec.get("parallel"), "deadline_s": spec.get("deadline_s"),
         "env": {k: str(v) for k, v in spec.get("env", {}).items()},
-        "inputs": inputs, "wheels": [w.name for w in wheels], "jobs": jobs,
+        "inputs": inputs, "wheels": [w.name for w in wheels], "setup": setup, "jobs": jobs,
         "slimmed": {w.name: {"from_bytes": full[w.name], "bytes": w.stat().st_size}
                     for w in wheels if w.parent.name == "slim"},
         "bytes": {"pack": pack_bytes, "working_tree": tree, "limit": limit},
@@ -258,7 +265,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"pack: {e}", file=sys.stderr)
         return 2
     b = m["bytes"]
-    print(f"pack {a.out}: {len(m['jobs'])} jobs, {len(m['inputs'])} inputs, "
+    print(f"pack {a.out}: {len(m['setup'])} setup jobs, {len(m['jobs'])} jobs, "
+          f"{len(m['inputs'])} inputs, "
           f"{len(m['wheels'])} wheels; {b['pack'] / MIB:.1f} MiB + working tree "
           f"{b['working_tree'] / MIB:.1f} MiB of {b['limit'] / MIB:.0f} MiB")
     return 0

@@ -5,7 +5,9 @@ started, so this runner keeps its own, earlier deadline: every job (each (method
 training run) is its own process group with a wall-clock limit of its own, capped by the
 global ``--deadline-s`` less the seconds kept for packing up; a job that overruns is stopped
 (SIGTERM, then SIGKILL) and what it wrote stays. The travelled wheels are installed first
-with pip and no index (``--target``, about 10 s for SAPIEN). At the end ``$OUT/results.tar.gz``
+with pip and no index (``--target``, about 10 s for SAPIEN), then the pack's setup jobs run
+(what the jobs need made there, such as a collection too large to travel), and the jobs
+start only if every setup job ended rc 0. At the end ``$OUT/results.tar.gz``
 holds ``summary.json`` (per job: rc, seconds, timed out), the runner's and every job's log,
 and the jobs' outputs, up to the size the tool brings back (outputs that do not fit go to
 ``results-1.tar.gz`` ..., and past ``--max-parts`` are left out and named in the summary);
@@ -258,20 +260,31 @@ def _job_env(manifest: dict, site: Path, parallel: int) -> dict[str, str]:
     return env
 
 
-def _summary(manifest: dict, jobs: list[Job], t0: float, deadline: float, parallel: int,
-             wheels: tuple[int, float], tarballs: list[str], left_out: list[str]) -> dict:
+def _skip(jobs: list[Job], why: str) -> None:
+    for job in jobs:
+        job.status = "skipped"
+        job.notes.append(why)
+
+
+def _job_record(j: Job, t0: float) -> dict[str, Any]:
+    return {"name": j.name, "argv": j.argv, "status": j.status, "rc": j.rc,
+            "timed_out": j.timed_out, "timeout_s": j.timeout_s,
+            "start_s": round(j.start - t0, 2) if j.start else None,
+            "seconds": round(j.end - j.start, 2) if j.end else None,
+            "outputs": j.outputs, "notes": j.notes}
+
+
+def _summary(manifest: dict, setup: list[Job], jobs: list[Job], t0: float, deadline: float,
+             parallel: int, wheels: tuple[int, float], tarballs: list[str],
+             left_out: list[str]) -> dict:
     rc, wheel_s = wheels
     return {
         "pack": manifest["name"], "commit": manifest.get("commit"), "host": host_info(),
         "deadline_s": deadline, "parallel": parallel, "wheels_s": round(wheel_s, 2),
         "wheels_rc": rc, "seconds": round(time.monotonic() - t0, 2), "tarballs": tarballs,
         "left_out": left_out,
-        "jobs": [{"name": j.name, "argv": j.argv, "status": j.status, "rc": j.rc,
-                  "timed_out": j.timed_out, "timeout_s": j.timeout_s,
-                  "start_s": round(j.start - t0, 2) if j.start else None,
-                  "seconds": round(j.end - j.start, 2) if j.end else None,
-                  "outputs": j.outputs, "notes": j.notes}
-                 for j in jobs],
+        "setup": [_job_record(j, t0) for j in setup],
+        "jobs": [_job_record(j, t0) for j in jobs],
     }
 
 
@@ -315,23 +328,30 @@ def main(argv: list[str] | None = None) -> int:
     rc, wheel_s, pip_out = install_wheels(a.pack, manifest["wheels"], a.site, say)
     link_inputs(a.pack, manifest["inputs"], work)
     env = _job_env(manifest, a.site, parallel)
-    jobs = [Job(j["name"], j["argv"], j["outputs"], j.get("timeout_s"), j.get("env", {}))
-            for j in manifest["jobs"]]
+    setup, jobs = ([Job(j["name"], j["argv"], j["outputs"], j.get("timeout_s"),
+                        j.get("env", {})) for j in manifest.get(phase, [])]
+                   for phase in ("setup", "jobs"))
+    end = t0 + deadline - reserve
     if rc != 0:
         say("wheels did not install: no job started\n" + pip_out)
-        for job in jobs:
-            job.status = "skipped"
+        _skip(setup + jobs, "the wheels did not install")
     else:
-        Runner(jobs, work, logs, env, parallel, t0 + deadline - reserve, a.grace_s,
-               say).run()
-    bins, left_out = collect_files(jobs, work, logs, int(a.max_tar_mib * MIB), a.max_parts)
+        Runner(setup, work, logs, env, parallel, end, a.grace_s, say).run()
+        failed_setup = [j.name for j in setup if j.rc != 0]
+        if failed_setup:
+            say(f"setup failed ({', '.join(failed_setup)}): no job started")
+            _skip(jobs, f"setup job {', '.join(failed_setup)} did not end rc 0")
+        else:
+            Runner(jobs, work, logs, env, parallel, end, a.grace_s, say).run()
+    bins, left_out = collect_files(setup + jobs, work, logs, int(a.max_tar_mib * MIB),
+                                   a.max_parts)
     tarballs = ["results.tar.gz"] + [f"results-{i}.tar.gz" for i in range(1, len(bins))]
-    summary = _summary(manifest, jobs, t0, deadline, parallel, (rc, wheel_s), tarballs,
+    summary = _summary(manifest, setup, jobs, t0, deadline, parallel, (rc, wheel_s), tarballs,
                        left_out)
     if left_out:
         say(f"left out of the tarball (over {a.max_tar_mib} MiB): {', '.join(left_out)}")
-    failed = [j.name for j in jobs if j.rc != 0]
-    say(f"done: {len(jobs) - len(failed)} of {len(jobs)} jobs rc 0"
+    failed = [j.name for j in setup + jobs if j.rc != 0]
+    say(f"done: {len(setup + jobs) - len(failed)} of {len(setup + jobs)} jobs rc 0"
         + (f"; not: {', '.join(failed)}" if failed else ""))
     runner_log.close()
     (stage / "summary.json").write_text(json.dumps(summary, indent=1))
