@@ -37,3 +37,13 @@ def test_w2e_demo_as_typed_learns_the_novel_category(tmp_path: Path):
     assert after > before, (before, after, s["explore"]["message"])
     for png in s["heatmaps"]:
         assert Path(png).stat().st_size > 10_000
+
+
+def test_w2e_demo_refuses_a_missing_parameter_file_before_starting_anything(tmp_path: Path):
+    w2e = Path(sys.executable).with_name("w2e")
+    out = tmp_path / "demo"
+    r = subprocess.run([str(w2e), "demo", "--params-file", str(tmp_path / "none.yaml"),
+                        "--out", str(out)], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2
+    assert r.stderr.strip() == f"w2e demo: no parameter file {tmp_path / 'none.yaml'}"
+    assert not (out / "summary.json").exists()

@@ -58,6 +58,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="what the inference node replays while fine-tuning: a w2e collect "
                         "or replay-pack directory, shipped (checkpoints/replay_cfw); '': the "
                         "node's default")
+    p.add_argument("--params-file", default=None,
+                   help="the stack's parameters (default: config/w2e_stack.yaml), e.g. a "
+                        "copy with other fine-tuning settings for the inference node")
     p.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID of the stack")
     p.add_argument("--quiet-nodes", action="store_true", help="hide the nodes' output")
 
@@ -130,6 +133,9 @@ def run(a: argparse.Namespace) -> int:
         print(f"w2e demo: no {a.primitive} model at {ckpt}; train one (`w2e train`) or pass "
               "--checkpoint", file=sys.stderr)
         return 2
+    if a.params_file and not Path(a.params_file).is_file():
+        print(f"w2e demo: no parameter file {a.params_file}", file=sys.stderr)
+        return 2
     test = cats.instances(a.category, "test")[:a.test_instances]
     explore = cats.instances(a.category, "explore")[:a.explore_instances]
     out = Path(a.out)
@@ -146,7 +152,8 @@ def run(a: argparse.Namespace) -> int:
     t_all = time.perf_counter()
     # a loaded machine (the inference node reading its checkpoints and replay data beside
     # other jobs) once needed more than 60 s: the services get the same 180 s as the nodes
-    with Stack(env=env, extra_args=extra, output=None if a.quiet_nodes else sys.stdout,
+    with Stack(params=a.params_file, env=env, extra_args=extra,
+               output=None if a.quiet_nodes else sys.stdout,
                ready_timeout=READY_TIMEOUT_S), W2EClient(domain_id=domain) as w2e:
         if missing := w2e.missing_services(READY_TIMEOUT_S):
             print(f"w2e demo: the stack did not come up: no {', '.join(missing)} within "
@@ -169,7 +176,7 @@ def run(a: argparse.Namespace) -> int:
         "category": a.category, "primitive": a.primitive, "checkpoint": str(ckpt),
         "test_instances": test, "explore_instances": explore, "budget": a.budget,
         "similarity_bar": a.similarity_bar, "strategy": a.strategy, "seed": a.seed,
-        "replay_data": a.replay_data,
+        "replay_data": a.replay_data, "params_file": a.params_file or "",
         "success_rate_before": before.success_rate, "success_rate_after": after.success_rate,
         "before": _per_instance(test, before), "after": _per_instance(test, after),
         "explore": {"ok": explored.success, "message": explored.message,

@@ -95,6 +95,9 @@ class InferenceSettings:
                                         also="; here: per update_model call", min=1, max=10000)
     finetune_lr: float = setting_param(FinetuneConfig, "finetune_lr", min=0.0)
     replay_fraction: float = setting_param(FinetuneConfig, "replay_fraction", min=0.0, max=1.0)
+    fit_target: float = setting_param(FinetuneConfig, "fit_target", min=0.0, max=1.0)
+    anchor: float = setting_param(FinetuneConfig, "anchor", min=0.0)
+    prior: float = setting_param(FinetuneConfig, "prior", min=0.0)
     replay_timeout_s: float = param(
         300.0, "longest wait of update_model for the replay, which is encoded in the "
         "background after start-up (predict_maps answers meanwhile)", min=0.0)
@@ -219,7 +222,8 @@ class InferenceNode(Node):
             data = InteractionData.load(source)
             replay = load_training_data_from(data, method, combo, primitive, source=str(source))
         cfg = FinetuneConfig(finetune=s.finetune, finetune_steps=s.finetune_steps,
-                             finetune_lr=s.finetune_lr, replay_fraction=s.replay_fraction)
+                             finetune_lr=s.finetune_lr, replay_fraction=s.replay_fraction,
+                             fit_target=s.fit_target, anchor=s.anchor, prior=s.prior)
         explorer = W2EExplorer(model, cfg, aff_categories=aff_cats, sim_categories=sim_cats,
                                train_similarity=True, seed=s.seed,
                                balanced_similarity=similarity_is_balanced(meta))
