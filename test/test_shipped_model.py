@@ -35,10 +35,12 @@ def test_shipped_model_rates_movable_parts_above_the_static_body(primitive: str)
     assert np.mean(movable) > np.mean(static) + 0.05, (movable, static)
 
 
-def test_shipped_full_data_reference_ranks_novel_pulls_better_than_the_base_model() -> None:
-    """checkpoints/fulldata_cfw_pull.pt (issue 26's Full-data reference: all 14 categories'
-    training instances) ranks simulated pulls on unseen test buckets and kettles above the
-    shipped base model, which never saw those categories."""
+@pytest.mark.parametrize("primitive", ["pull", "push"])
+def test_shipped_full_data_reference_ranks_novel_interactions_better_than_the_base_model(
+        primitive: str) -> None:
+    """checkpoints/fulldata_cfw_{pull,push}.pt (issue 26's Full-data references: all 14
+    categories' training instances) rank simulated interactions on unseen test buckets and
+    kettles above the shipped base model, which never saw those categories."""
     import tempfile
 
     from w2e_ros.core.data import InteractionData
@@ -49,16 +51,17 @@ def test_shipped_full_data_reference_ranks_novel_pulls_better_than_the_base_mode
 
     with tempfile.TemporaryDirectory() as tmp:
         collect(CollectConfig(out=tmp, categories=["bucket", "kettle"], split="test",
-                              observations=4, interactions=48, primitives=("pull",),
+                              observations=4, interactions=48, primitives=(primitive,),
                               workers=1, seed=3))
         data = InteractionData.load(tmp)
     scores = {}
-    for name, path in (("fulldata", checkpoint_dir() / "fulldata_cfw_pull.pt"),
-                       ("base", default_checkpoint("pull"))):
+    for name, path in (("fulldata", checkpoint_dir() / f"fulldata_cfw_{primitive}.pt"),
+                       ("base", default_checkpoint(primitive))):
         model, meta = load_model(path, "cpu")
         prob, _ = predict_interactions(model, data, cache=None)
         scores[name] = auroc(prob, data.success)
         if name == "fulldata":
             assert meta["method"] == "fulldata" and "bucket" in meta["aff_categories"]
+            assert meta["primitive"] == primitive
     assert data.success.sum() >= 5
     assert scores["fulldata"] > scores["base"] + 0.05, scores
