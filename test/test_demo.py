@@ -47,3 +47,14 @@ def test_w2e_demo_refuses_a_missing_parameter_file_before_starting_anything(tmp_
     assert r.returncode == 2
     assert r.stderr.strip() == f"w2e demo: no parameter file {tmp_path / 'none.yaml'}"
     assert not (out / "summary.json").exists()
+
+
+def test_w2e_demo_validate_refuses_when_no_explore_instance_is_left_to_judge(tmp_path: Path):
+    """--validate judges on the explore-split instances that are not explored; exploring all
+    ten leaves none, and the demo says so instead of judging on the explored ones."""
+    w2e = Path(sys.executable).with_name("w2e")
+    r = subprocess.run([str(w2e), "demo", "--validate", "--explore-instances", "10",
+                        "--out", str(tmp_path / "demo")], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 2
+    assert "validation needs explore instances of bucket beyond the 10 explored" in r.stderr

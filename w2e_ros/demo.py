@@ -46,6 +46,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="EXPLORE-split instances in the scene while exploring")
     p.add_argument("--test-instances", type=int, default=10,
                    help="unseen TEST-split instances manipulated before and after")
+    p.add_argument("--validate", action="store_true",
+                   help="manipulate the explore-split instances that are not explored "
+                        "instead of TEST-split ones (e.g. --explore-instances 5: explore "
+                        "30-34, judge 35-39), to choose settings without the test split")
     p.add_argument("--checkpoint", default=None,
                    help="model of the primitive (default: shipped checkpoints/w2e_cfw_*.pt)")
     p.add_argument("--out", default="results/demo", help="directory for the PNGs and summary")
@@ -136,8 +140,12 @@ def run(a: argparse.Namespace) -> int:
     if a.params_file and not Path(a.params_file).is_file():
         print(f"w2e demo: no parameter file {a.params_file}", file=sys.stderr)
         return 2
-    test = cats.instances(a.category, "test")[:a.test_instances]
     explore = cats.instances(a.category, "explore")[:a.explore_instances]
+    try:
+        test = cats.evaluation_instances(a.category, a.validate, len(explore))[:a.test_instances]
+    except ValueError as e:
+        print(f"w2e demo: {e}", file=sys.stderr)
+        return 2
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     domain = a.domain_id if a.domain_id is not None else pick_domain_id(5)
@@ -174,7 +182,8 @@ def run(a: argparse.Namespace) -> int:
         pngs.append(_heatmaps(w2e, a.category, test[0], a.primitive, out, "after"))
     summary = {
         "category": a.category, "primitive": a.primitive, "checkpoint": str(ckpt),
-        "test_instances": test, "explore_instances": explore, "budget": a.budget,
+        "test_instances": test, "explore_instances": explore, "validate": a.validate,
+        "budget": a.budget,
         "similarity_bar": a.similarity_bar, "strategy": a.strategy, "seed": a.seed,
         "replay_data": a.replay_data, "params_file": a.params_file or "",
         "success_rate_before": before.success_rate, "success_rate_after": after.success_rate,

@@ -38,6 +38,19 @@ class CategoryConfig:
             raise UnknownCategoryError(f"unknown split {split!r}; known: {', '.join(SPLITS)}")
         return [i for start, stop in self.splits[split] for i in range(start, stop)]
 
+    def evaluation_instances(self, category: str, validate: bool = False,
+                             explored: int = 10) -> list[int]:
+        """Instances a few-shot model is judged on: the TEST split, or with ``validate`` the
+        explore-split instances after the first ``explored`` (never explored, never test), so
+        that settings can be chosen without looking at the test instances."""
+        if not validate:
+            return self.instances(category, "test")
+        held_out = self.instances(category, "explore")[explored:]
+        if not held_out:
+            raise ValueError(f"validation needs explore instances of {category} beyond the "
+                             f"{explored} explored ones; explore fewer objects")
+        return held_out
+
     def combination(self, name: str | None = None) -> tuple[str, ...]:
         """Training categories of a combination; the first is C_aff, all three are C_sim."""
         name = name or self.default_combination

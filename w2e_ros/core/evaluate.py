@@ -130,19 +130,10 @@ class SuccessProbe:
 
 def evaluation_instances(category: str, validate: bool = False, explored: int = 10
                          ) -> list[int]:
-    """Instances a few-shot model is judged on: the TEST split, or with ``validate`` the
-    explore-split instances after the first ``explored`` (never explored, never test), so
-    that settings can be chosen without looking at the test instances."""
+    """The configured categories' :meth:`CategoryConfig.evaluation_instances`."""
     from w2e_ros.core.categories import load_categories
 
-    cats = load_categories()
-    if not validate:
-        return cats.instances(category, "test")
-    held_out = cats.instances(category, "explore")[explored:]
-    if not held_out:
-        raise ValueError(f"validation needs explore instances of {category} beyond the "
-                         f"{explored} explored ones; explore fewer objects")
-    return held_out
+    return load_categories().evaluation_instances(category, validate, explored)
 
 
 def evaluation_targets(categories: Sequence[str], per_category: int, state_seeds: int = 1,
