@@ -88,7 +88,11 @@ def summarise(runs: dict[str, dict[int, dict]], seeds: list[int]) -> dict:
 
 def write_tables(res: dict, out: Path, title: str) -> None:
     seeds = res["seeds"]
-    lines = [f"# {title}", "", "Successes on the 10 unseen test instances, before -> after "
+    first = next(iter(res["strategies"].values()))
+    judged = (f"{first['trials'] // len(seeds)} unseen "
+              + ("validation (explore-split, not explored)" if "--validate" in
+                 res.get("demo_flags", []) else "test") + " instances")
+    lines = [f"# {title}", "", f"Successes on the {judged}, before -> after "
              "(interactions explored).", "",
              "| strategy | " + " | ".join(f"seed {s}" for s in seeds) + " | all | gained / lost "
              "(exact McNemar p) | mean gain per trial [95 % CI, seeds resampled] |",
