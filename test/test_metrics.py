@@ -257,9 +257,10 @@ def test_the_probe_with_the_approach_check_executes_the_best_clear_action():
 
 def test_validation_instances_are_neither_explored_nor_test():
     from w2e_ros.core.categories import load_categories
-    from w2e_ros.core.evaluate import evaluation_instances, evaluation_targets
+    from w2e_ros.core.evaluate import evaluation_targets
 
     cats = load_categories()
+    evaluation_instances = cats.evaluation_instances
     test = set(cats.instances("kettle", "test"))
     explored = set(cats.instances("kettle", "explore")[:5])
     held_out = evaluation_instances("kettle", validate=True, explored=5)

@@ -272,7 +272,6 @@ def _run_evaluate(a: argparse.Namespace) -> int:
     from w2e_ros.core.evaluate import (
         SuccessProbe,
         evaluate,
-        evaluation_instances,
         evaluation_targets,
     )
     from w2e_ros.core.model import load_model
@@ -286,7 +285,8 @@ def _run_evaluate(a: argparse.Namespace) -> int:
     if a.test_data:
         data = InteractionData.load(a.test_data)
         test = InteractionData.concat([data.select(primitive=primitive, categories=[c],
-                                                   instances=evaluation_instances(c))
+                                                   instances=load_categories()
+                                                   .evaluation_instances(c))
                                        for c in cats])
     probe = None
     if a.objects > 0:

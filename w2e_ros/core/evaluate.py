@@ -128,21 +128,15 @@ class SuccessProbe:
         return out
 
 
-def evaluation_instances(category: str, validate: bool = False, explored: int = 10
-                         ) -> list[int]:
-    """The configured categories' :meth:`CategoryConfig.evaluation_instances`."""
-    from w2e_ros.core.categories import load_categories
-
-    return load_categories().evaluation_instances(category, validate, explored)
-
-
 def evaluation_targets(categories: Sequence[str], per_category: int, state_seeds: int = 1,
                        validate: bool = False, explored: int = 10) -> list[Any]:
     """The first ``per_category`` evaluation instances of each category (x start states)."""
+    from w2e_ros.core.categories import load_categories
     from w2e_ros.core.targets import Target
 
+    cats = load_categories()
     return [Target(c, i, s) for c in categories
-            for i in evaluation_instances(c, validate, explored)[:per_category]
+            for i in cats.evaluation_instances(c, validate, explored)[:per_category]
             for s in range(state_seeds)]
 
 

@@ -38,7 +38,6 @@ from w2e_ros.core.categories import load_categories
 from w2e_ros.core.data import InteractionData
 from w2e_ros.core.evaluate import (
     SuccessProbe,
-    evaluation_instances,
     evaluation_targets,
     predict_interactions,
 )
@@ -201,7 +200,8 @@ def _group(cfg: BenchmarkConfig, prim: str, combo: str, test_all: InteractionDat
         if test_all is not None:
             test = InteractionData.concat([test_all.select(
                 primitive=prim, categories=[c],
-                instances=evaluation_instances(c, cfg.validate, cfg.explore_objects))
+                instances=load_categories().evaluation_instances(c, cfg.validate,
+                                                                 cfg.explore_objects))
                 for c in novel])
         _GROUPS[key] = (world, novel, _Evaluator(cfg, world, novel, prim, test))
     return _GROUPS[key]

@@ -40,7 +40,6 @@ import numpy as np
 from w2e_ros.core.categories import load_categories
 from w2e_ros.core.config import LEARNABILITY_SELECTIONS
 from w2e_ros.core.data import InteractionData
-from w2e_ros.core.evaluate import evaluation_instances
 from w2e_ros.core.finetune import W2EExplorer, similarity_is_balanced, trains_similarity
 from w2e_ros.core.metrics import auroc, classification_metrics, within_class_auroc
 from w2e_ros.core.model import W2EModel, load_model
@@ -129,7 +128,7 @@ def run_learnability(cfg: LearnabilityConfig) -> dict:
     test_all = InteractionData.load(cfg.test_data)
     test = InteractionData.concat([test_all.select(
         primitive=prim, categories=[c],
-        instances=evaluation_instances(c, cfg.validate, n_pool_obj)) for c in novel])
+        instances=cats_cfg.evaluation_instances(c, cfg.validate, n_pool_obj)) for c in novel])
     if not pool.num_interactions or not test.num_interactions:
         raise ValueError(f"no {prim} interactions of {', '.join(novel)} in the pool "
                          f"({cfg.pool_data}) or the test data ({cfg.test_data})")
