@@ -26,6 +26,9 @@ def test_shipped_splits_are_disjoint_and_train_has_two_ranges():
     assert train == list(range(0, 30)) + list(range(50, 270))
     assert explore == list(range(30, 40)) and test == list(range(40, 50))
     assert not set(train) & set(explore) and not set(train) & set(test)
+    extra = cats.instances("cabinet", "extra")  # beyond the reference's 270, for scaling studies
+    assert extra[0] == 270 and len(extra) > 1000
+    assert not set(extra) & (set(train) | set(explore) | set(test))
     assert cats.novel("cfw") == [c for c in cats.categories
                                  if c not in ("cabinet", "faucet", "window")]
 

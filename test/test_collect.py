@@ -28,6 +28,14 @@ def test_plan_is_balanced_across_categories_and_stable() -> None:
     assert all(o[1] in train for o in flat)  # train split (0..29 and 50..269)
 
 
+def test_the_extra_split_draws_distinct_instances_beyond_the_training_ones() -> None:
+    cfg = _cfg("unused", observations=300, obs_per_shard=8)
+    cfg.split = "extra"
+    ids = [o[1] for c in plan_chunks(cfg) for o in c if o[0] == "cabinet"]
+    assert len(ids) == len(set(ids)) == 300  # 300 observations, 300 different objects
+    assert min(ids) >= 270
+
+
 @pytest.mark.slow
 def test_tiny_collection_round_trips_and_resumes(tmp_path) -> None:
     summary = collect(_cfg(tmp_path / "a"))

@@ -10,7 +10,7 @@ import yaml
 
 from w2e_ros.paths import config_dir
 
-SPLITS = ("train", "explore", "test")
+SPLITS = ("train", "explore", "test", "extra")
 
 
 class UnknownCategoryError(ValueError):
@@ -32,10 +32,11 @@ class CategoryConfig:
         return category
 
     def instances(self, category: str, split: str) -> list[int]:
-        """Instance ids of a category in a split (train / explore / test)."""
+        """Instance ids of a category in a split (train / explore / test / extra)."""
         self.check_category(category)
         if split not in self.splits:
-            raise UnknownCategoryError(f"unknown split {split!r}; known: {', '.join(SPLITS)}")
+            raise UnknownCategoryError(
+                f"unknown split {split!r}; known: {', '.join(self.splits)}")
         return [i for start, stop in self.splits[split] for i in range(start, stop)]
 
     def evaluation_instances(self, category: str, validate: bool = False,
