@@ -22,6 +22,7 @@ from w2e_ros.core.training import (
     RunningAccuracy,
     Trainer,
     Validator,
+    load_training_data_from,
     make_batch,
     method_categories,
     train,
@@ -623,3 +624,14 @@ def test_cosine_schedule_decays_to_its_floor_and_a_resumed_run_follows_it(tmp_pa
     resumed.resume(tmp_path / "run")
     assert resumed.step == 2
     assert resumed.learning_rate() == pytest.approx(1e-3 * (0.05 + 0.95 * 0.5))
+
+
+def test_training_data_keeps_train_and_extra_instances_and_never_explore_or_test_ones():
+    starts = {"train": 0, "explore": 30, "test": 40, "extra": 300}
+    data = InteractionData.concat([synthetic_data(obs_per_cat=2, instance_start=s, seed=i)
+                                   for i, s in enumerate(starts.values())])
+    kept = load_training_data_from(data, "where2act", "cfw", "push")
+    assert sorted(set(kept.instance.tolist())) == [0, 1, 300, 301]
+    # the validator judges what training never saw: explore / test, not extra
+    held = Validator(data, ("cabinet", "faucet", "window"), (), "push").data
+    assert sorted(set(held.instance.tolist())) == [30, 31, 40, 41]

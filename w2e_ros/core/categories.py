@@ -39,6 +39,13 @@ class CategoryConfig:
                 f"unknown split {split!r}; known: {', '.join(self.splits)}")
         return [i for start, stop in self.splits[split] for i in range(start, stop)]
 
+    def training_instances(self, category: str) -> list[int]:
+        """Instances a model may train on: the train split and, where the file defines it,
+        the extra split (never explored, never judged). Training data is filtered to these,
+        so a collection of explore or test instances can never leak into a model."""
+        extra = self.instances(category, "extra") if "extra" in self.splits else []
+        return self.instances(category, "train") + extra
+
     def evaluation_instances(self, category: str, validate: bool = False,
                              explored: int = 10) -> list[int]:
         """Instances a few-shot model is judged on: the TEST split, or with ``validate`` the

@@ -18,7 +18,7 @@ def replay_data(data: InteractionData, meta: dict, primitive: str) -> Interactio
     cats = list(dict.fromkeys(list(meta.get("aff_categories", [])) +
                               list(meta.get("sim_categories", []))))
     cfg = load_categories()
-    train_split = cfg.instances(cats[0] if cats else cfg.categories[0], "train")
+    train_split = cfg.training_instances(cats[0] if cats else cfg.categories[0])
     return data.select(primitive=primitive, categories=cats or None, instances=train_split)
 
 

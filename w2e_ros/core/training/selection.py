@@ -45,7 +45,8 @@ def retarget(meta: dict, combo: str, source: str = "the model") -> dict:
 
 def load_training_data(data_dir: str | Path, method: str, combo: str, primitive: str,
                        include_invalid: bool = True) -> InteractionData:
-    """The train-split interactions of one primitive on the method's training categories."""
+    """The training interactions (train and extra splits) of one primitive on the method's
+    training categories."""
     return load_training_data_from(InteractionData.load(data_dir), method, combo, primitive,
                                    include_invalid, source=str(data_dir))
 
@@ -56,7 +57,7 @@ def load_training_data_from(data: InteractionData, method: str, combo: str, prim
     """:func:`load_training_data` on a collection already in memory."""
     aff, sim = method_categories(method, combo)
     cats = tuple(dict.fromkeys(aff + sim))
-    split = load_categories().instances(cats[0], "train")
+    split = load_categories().training_instances(cats[0])
     sel = data.select(primitive=primitive, categories=cats, instances=split,
                       valid_only=not include_invalid)
     if sel.num_interactions == 0:

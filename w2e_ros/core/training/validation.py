@@ -27,7 +27,7 @@ class Validator:
         train_split = set()
         cats_cfg = load_categories()
         for c in np.unique(data.category):
-            train_split |= {(str(c), i) for i in cats_cfg.instances(str(c), "train")}
+            train_split |= {(str(c), i) for i in cats_cfg.training_instances(str(c))}
         held_out = np.array([(str(c), int(i)) not in train_split
                              for c, i in zip(data.category, data.instance, strict=True)])
         mask = (data.primitive == primitive) & held_out[data.obs_index]
