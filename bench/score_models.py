@@ -80,14 +80,20 @@ def score(model_path: str, val_dirs: list[str], n_boot: int, resample: str = "ob
     return out
 
 
-def paired_training_score(a: tuple, b: tuple, n_boot: int) -> tuple[float, float, float]:
-    """Training score of b minus a on the same held-out rows, with one bootstrap interval
-    over the shared resampling units: the difference, not two overlapping intervals."""
+def paired_training_score(a: tuple, b: tuple, n_boot: int, novel: bool = False
+                          ) -> tuple[float, float, float]:
+    """Training score of b minus a on the same held-out rows (``novel``: the pooled AUROC of
+    the novel categories' rows), with one bootstrap interval over the shared resampling
+    units: the difference, not two overlapping intervals."""
     from w2e_ros.core.metrics import auroc, bootstrap_ci
 
     (pa, y, cats, unit, train_cats), pb = a, b[0]
     if len(pb) != len(pa) or not np.array_equal(b[1], y):
         raise ValueError("--paired needs every model scored on the same held-out rows")
+    if novel:
+        rows = np.flatnonzero(~np.isin(cats, train_cats))
+        return bootstrap_ci(lambda r: auroc(pb[rows][r], y[rows][r]) -
+                            auroc(pa[rows][r], y[rows][r]), unit[rows], n_boot)
 
     def diff(r: np.ndarray) -> float:
         return float(np.nanmean([auroc(pb[r][cats[r] == c], y[r][cats[r] == c]) -
@@ -107,8 +113,8 @@ def main() -> int:
     ap.add_argument("--per-instance", action="store_true",
                     help="also each held-out object's AUROC (STEM_instances.md)")
     ap.add_argument("--paired", action="store_true",
-                    help="also each model's training score minus the first model's, with a "
-                         "paired interval (column minus_first)")
+                    help="also each model's training score (and novel AUROC) minus the first "
+                         "model's, with a paired interval (minus_first, novel_minus_first)")
     ap.add_argument("--out", required=True, help="stem: writes STEM.json and STEM.md")
     a = ap.parse_args()
     import torch
@@ -124,6 +130,9 @@ def main() -> int:
         first = next(iter(data_rows.values()))
         for k in list(rows)[1:]:
             rows[k]["minus_first"] = paired_training_score(first, data_rows[k], a.boot)
+            if "novel_auroc" in rows[k]:
+                rows[k]["novel_minus_first"] = paired_training_score(
+                    first, data_rows[k], a.boot, novel=True)
     keys = list(dict.fromkeys(k for r in rows.values() for k, v in r.items()
                               if isinstance(v, tuple)))
 

@@ -40,3 +40,19 @@ def test_models_scored_on_different_rows_are_refused():
     with pytest.raises(ValueError, match="same held-out rows"):
         score_models.paired_training_score(_rows(np.zeros(20), y, unit),
                                            _rows(np.zeros(20), ~y, unit), 10)
+
+
+def test_the_novel_difference_pools_only_the_rows_of_categories_the_models_never_trained_on():
+    rng = np.random.default_rng(1)
+    y = rng.random(3000) < 0.2
+    unit = np.repeat(np.arange(60), 50)
+    cats = np.array(["cabinet", "faucet", "kettle"])[np.arange(3000) % 3]
+    a = rng.random(3000)
+    b = np.where(cats == "kettle", 2.0 * y + rng.random(3000), a)  # better on kettle only
+
+    def rows(p: np.ndarray) -> tuple:
+        return p, y, cats, unit, ["cabinet", "faucet"]
+
+    assert score_models.paired_training_score(rows(a), rows(b), 100) == (0.0, 0.0, 0.0)
+    d, lo, _ = score_models.paired_training_score(rows(a), rows(b), 100, novel=True)
+    assert d > 0.3 and lo > 0
