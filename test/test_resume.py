@@ -201,11 +201,9 @@ def stack(tmp_path_factory):
         "inference": ["-p", f"push_checkpoint:={ckpt['push']}",
                       "-p", f"pull_checkpoint:={ckpt['pull']}",
                       "-p", f"adapted_dir:={tmp / 'adapted'}", "-p", "finetune_steps:=2"],
-        # a killed server is noticed by its missing answer: short waits keep the test short;
-        # not shorter than 45 s for the services: the first fine-tune of a respawned inference
-        # node (torch warm-up, replay) took over 15 s on the 2-core CPU beside two trainings
+        # a killed server is noticed by its missing answer: short waits keep the test short
         "planner": ["-p", "points_per_object:=64", "-p", f"exploration_log_dir:={log_dir}",
-                    "-p", "execute_timeout_s:=15.0", "-p", "service_timeout_s:=45.0",
+                    "-p", "execute_timeout_s:=15.0", "-p", "service_timeout_s:=15.0",
                     "-p", "observe_timeout_s:=40.0", "-p", "connect_timeout_s:=5.0"],
     }
     with Stack(env=env, output=out, ready_timeout=150.0, extra_args=extra, respawn=True,
