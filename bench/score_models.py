@@ -52,8 +52,7 @@ def score(model_path: str, val_dirs: list[str], n_boot: int, resample: str = "ob
         unit = data.obs_index
 
     def training_score(rows: np.ndarray) -> float:
-        return float(np.nanmean([auroc(prob[rows][cats[rows] == c], y[rows][cats[rows] == c])
-                                 for c in train_cats]))
+        return category_mean_auroc(prob, y, cats, train_cats, rows)
 
     out = {"model": model_path, "step": meta.get("step"), "val": val_dirs,
            "positives": int(y[np.isin(cats, train_cats)].sum())}
@@ -95,12 +94,17 @@ def paired_training_score(a: tuple, b: tuple, n_boot: int, novel: bool = False
         return bootstrap_ci(lambda r: auroc(pb[rows][r], y[rows][r]) -
                             auroc(pa[rows][r], y[rows][r]), unit[rows], n_boot)
 
-    def diff(r: np.ndarray) -> float:
-        return float(np.nanmean([auroc(pb[r][cats[r] == c], y[r][cats[r] == c]) -
-                                 auroc(pa[r][cats[r] == c], y[r][cats[r] == c])
-                                 for c in train_cats]))
+    return bootstrap_ci(lambda r: category_mean_auroc(pb, y, cats, train_cats, r) -
+                        category_mean_auroc(pa, y, cats, train_cats, r), unit, n_boot)
 
-    return bootstrap_ci(diff, unit, n_boot)
+
+def category_mean_auroc(prob: np.ndarray, y: np.ndarray, cats: np.ndarray,
+                        train_cats: list[str], rows: np.ndarray) -> float:
+    """The training score: the mean over the training categories of their AUROC on ``rows``."""
+    from w2e_ros.core.metrics import auroc
+
+    return float(np.nanmean([auroc(prob[rows][cats[rows] == c], y[rows][cats[rows] == c])
+                             for c in train_cats]))
 
 
 def main() -> int:
