@@ -11,11 +11,13 @@ process and its own ``call`` is what is timed.
 from __future__ import annotations
 
 import os
+import select
 import signal
 import subprocess
 import sys
 import threading
 import time
+from types import SimpleNamespace
 
 import pytest
 
@@ -67,9 +69,13 @@ class Server:
         assert self.proc.stdout is not None
         assert self.proc.stdout.readline().strip() == "ready"
 
-    def wait_request(self) -> None:
+    def wait_request(self, timeout: float = 60.0) -> bool:
+        """Whether the request reached this process within ``timeout`` s."""
         assert self.proc.stdout is not None
+        if not select.select([self.proc.stdout], [], [], timeout)[0]:
+            return False
         assert self.proc.stdout.readline().strip() == "request"
+        return True
 
     def kill(self) -> None:
         if self.proc.poll() is None:
@@ -133,7 +139,7 @@ def _kill_mid_request(planner, respawn: bool) -> tuple[dict, float]:
     servers.append(first := Server(env))
     _pinned(node)
     thread, out = _call_in_thread(node)
-    first.wait_request()
+    assert first.wait_request()
     first.kill()
     t_kill = time.monotonic()
     if respawn:
@@ -173,7 +179,7 @@ def test_a_server_that_does_not_announce_is_not_judged(planner):
     node.pin_peers()
     assert node.pinned["predict_maps"] is None
     thread, out = _call_in_thread(node)
-    first.wait_request()
+    assert first.wait_request()
     time.sleep(LEASE_S + 1.5)
     assert thread.is_alive() and not out, out  # still waiting for its answer
 
@@ -196,3 +202,69 @@ def test_an_announcement_seen_late_is_not_a_restart_of_the_call(planner):
     later = f"host:3:{time.time_ns() + 10**9}"  # a process started during the call
     watch._on_instance(String(data=later))
     assert "inference_node restarted" in node.peer_check("predict_maps")()
+
+
+def _dead(planner) -> None:
+    """A server that announced itself, then was SIGKILLed: the planner has seen it die."""
+    node, env, servers = planner
+    servers.append(first := Server(env))
+    _pinned(node)
+    first.kill()
+    end = time.monotonic() + LEASE_S + 5
+    while node.peers["predict_maps"].current() is not None and time.monotonic() < end:
+        time.sleep(0.05)
+    assert node.peers["predict_maps"].current() is None, "the death was not seen"
+
+
+def test_a_call_after_a_death_waits_for_the_respawned_server_and_reaches_it(planner):
+    """The full suite's respawn failure (2026-12-05): after a SIGKILL the dead process's
+    endpoints stay on the graph for the DDS lease, so ``wait_for_service`` said ready at once
+    and the next explore's first request went out before the respawned server could take it;
+    no answer came. The call now waits for the new process's announcement, and the request
+    reaches it."""
+    node, env, servers = planner
+    _dead(planner)
+    node.pin_peers()  # the next explore call pins: nothing is serving yet
+    thread, out = _call_in_thread(node)
+    time.sleep(1.5)  # the respawn takes a while (bringup's delay, imports, the model)
+    assert thread.is_alive() and not out, out  # waiting, not failed
+    servers.append(second := Server(env))
+    assert second.wait_request(DETECT_S), "the request never reached the respawned server"
+    assert thread.is_alive() and not out, out  # and it is now waiting for the answer
+
+
+def test_a_call_after_a_death_fails_clearly_when_no_server_comes_back(planner):
+    node = planner[0]
+    _dead(planner)
+    node.settings.restart_timeout_s = 1.0
+    node.pin_peers()
+    t0 = time.monotonic()
+    with pytest.raises(StackError, match="inference_node died and no new process announced "
+                       "itself within 1 s"):
+        node.call(node.predict_cli, PredictMaps.Request(), "predict_maps")
+    assert time.monotonic() - t0 < 1.0 + 2.0
+
+
+def test_liveliness_back_before_the_new_announcement_is_not_the_dead_instance(planner):
+    """The respawn test's second failure mode (under load, 2026-12-05): the respawned
+    process's writer makes liveliness come back before its announcement arrives, so the
+    dead instance looked alive again, a call pinned it, and the announcement that followed
+    failed the call as "restarted". Until another instance announces itself, the dead one
+    stays dead; liveliness back for a lease with no new announcement is the same process
+    back (a network that healed)."""
+    node = planner[0]
+    watch = node.peers["update_model"]
+    old, new = "host:1:1000", f"host:2:{time.time_ns()}"
+    watch._on_instance(String(data=old))
+    assert watch.current() == old
+    watch._on_liveliness(SimpleNamespace(alive_count=0))  # SIGKILL, the lease ran out
+    assert watch.current() is None and not watch.wait_serving(0.3)
+    watch._on_liveliness(SimpleNamespace(alive_count=1))  # the new writer, no message yet
+    assert watch.current() is None and not watch.wait_serving(0.3)
+    watch._on_instance(String(data=new))
+    assert watch.current() == new and watch.wait_serving(0.0)
+    # the same process back: no new announcement within the lease
+    watch._on_liveliness(SimpleNamespace(alive_count=0))
+    watch._on_liveliness(SimpleNamespace(alive_count=1))
+    assert watch.current() is None
+    assert watch.wait_serving(LEASE_S + 1.0) and watch.current() == new

@@ -127,6 +127,9 @@ class PlannerSettings:
     observe_timeout_s: float = param(15.0, "longest wait for a segmented cloud of an object",
                                      min=0.1)
     connect_timeout_s: float = param(5.0, "longest wait for a server to appear", min=0.0)
+    restart_timeout_s: float = param(30.0, "longest wait for a server seen to die (or to be "
+                                     "killed) to come back before a call to it fails: a "
+                                     "respawned node takes seconds to load", min=0.0)
     settle_s: float = param(2.0, "after a fresh frame shows some target objects, how long to "
                             "wait for the others before acting on the visible ones", min=0.0)
     fresh_after_execute: bool = param(True, "after an interaction, observe every object in a "
@@ -221,12 +224,23 @@ class PlannerNode(Node):
             return self.peers[name].check(self.pinned[name], self.pinned_at)
         return check
 
+    def wait_serving(self, name: str) -> None:
+        """Wait for a restarted server of ``name`` to announce itself before sending to it
+        (:meth:`PeerWatch.wait_serving`: a request sent to the dead one's endpoints is lost)."""
+        watch = self.peers.get(name)
+        wait = self.settings.restart_timeout_s
+        if watch is not None and not watch.wait_serving(wait):
+            raise StackError(f"{name}: {watch.server} died and no new process announced "
+                             f"itself within {wait:.0f} s (is it respawned? w2e bringup "
+                             "--respawn restarts it)")
+
     def call(self, client, request, what: str, timeout: float | None = None):
         """One service call with a timeout; a refusal (success=false) raises StackError, and
         so does the death or restart of the server (``what`` is the service's name)."""
         s = self.settings
         if not client.wait_for_service(timeout_sec=s.connect_timeout_s):
             raise StackError(f"{what}: service not available (is its node running?)")
+        self.wait_serving(what)
         check = self.peer_check(what)
         if why := check():
             raise StackError(f"{what}: {why}")
@@ -246,6 +260,7 @@ class PlannerNode(Node):
         if not self.exec_cli.wait_for_server(timeout_sec=s.connect_timeout_s):
             raise StackError("execute_interaction: action server not available (is the "
                              "executor node running?)")
+        self.wait_serving("execute_interaction")
         check = self.peer_check("execute_interaction")
         if why := check():
             raise StackError(f"execute_interaction: {why}")

@@ -88,9 +88,14 @@ class PeerWatch:
     def __init__(self, node: Node, name: str, server: str, callback_group=None) -> None:
         """``server`` names the serving node in messages (e.g. ``inference_node``)."""
         self.name, self.server = name, server
-        self._lock = threading.Lock()
+        self._lock = threading.Condition()
         self._instance: str | None = None
-        self._lost = False  # the announcing writer's liveliness ran out, none came back
+        self._lost = False  # no announcing writer's liveliness is asserted now
+        # the instance whose liveliness ran out: liveliness comes back with the respawned
+        # process's writer *before* its announcement arrives, and until then the instance
+        # known is still the dead one
+        self._dead: str | None = None
+        self._back_at: float | None = None  # monotonic s when liveliness came back
         node.create_subscription(
             String, alive_topic(node, name), self._on_instance, ALIVE_QOS,
             event_callbacks=SubscriptionEventCallbacks(liveliness=self._on_liveliness),
@@ -100,15 +105,52 @@ class PeerWatch:
         with self._lock:  # the newest process wins, whatever order the announcements come in
             if self._instance is None or started_ns(msg.data) >= started_ns(self._instance):
                 self._instance = msg.data
+                self._lock.notify_all()
 
     def _on_liveliness(self, info: QoSLivelinessChangedInfo) -> None:
         with self._lock:
             self._lost = info.alive_count == 0
+            if self._lost:
+                self._dead, self._back_at = self._instance, None
+            elif self._dead is not None:
+                self._back_at = time.monotonic()
+            self._lock.notify_all()
+
+    def _is_dead(self) -> bool:
+        """The known instance died and no other has announced itself. Liveliness back for
+        :data:`LEASE_S` without a new announcement: the same process came back (a network
+        that healed), not a new one."""
+        if self._lost:
+            return True
+        if self._instance is None or self._instance != self._dead:
+            return False
+        if self._back_at is not None and time.monotonic() - self._back_at > LEASE_S:
+            self._dead = None
+            return False
+        return True
 
     def current(self) -> str | None:
         """The serving instance now (None: none announced, or it died)."""
         with self._lock:
-            return None if self._lost else self._instance
+            return None if self._is_dead() else self._instance
+
+    def wait_serving(self, timeout: float) -> bool:
+        """Block until a live instance serves the name, at most ``timeout`` s; False when the
+        one seen before died and none came back. A server that never announced is not waited
+        for. Why: after a SIGKILL the dead process's endpoints stay on the graph until the DDS
+        lease runs out (~20 s), so ``wait_for_service`` is true at once, and a request sent
+        before the respawned server is matched is lost (measured: the resumed explore's
+        first update_model went out 0.18 s before the new inference node served, and no
+        answer came). The announcement is published after the services exist, so its
+        arrival is the sign that they can be reached."""
+        deadline = time.monotonic() + timeout
+        with self._lock:
+            while self._instance is not None and self._is_dead():
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self._lock.wait(min(0.2, left))  # _is_dead also changes with time
+            return True
 
     def check(self, pinned: str | None, since_ns: int = 0) -> str | None:
         """Why the instance ``pinned`` (from :meth:`current` at ``since_ns``, wall clock) cannot
@@ -123,7 +165,7 @@ class PeerWatch:
                 return (f"{self.server} restarted (a new process serves {self.name}; what "
                         "the old one held in memory and any request it was answering are "
                         "lost)")
-            if self._lost:
+            if self._is_dead():
                 return (f"{self.server} is gone (no sign of life on {self.name} for "
                         f"{LEASE_S:.0f} s: did its process die?)")
         return None
