@@ -9,6 +9,8 @@
 #
 #   bench/combos.sh            # all of it, one thing at a time
 #   bench/combos.sh csr        # only what the csr rows need
+#   bench/combos.sh csr tfr & bench/combos.sh tsw   # two at once on two cores (the table
+#                                                    # models are trained once, under a lock)
 #
 # Models and data follow REPRODUCE steps 18 / 19 (the 2026-12-03 run of these combinations):
 # csr explores with the shipped cabinet models (its similarity fitted on csr), tfr and tsw with
@@ -54,14 +56,19 @@ model() {  # model COMBO PRIM: make $RUNS/w2e_COMBO_PRIM/model.pt and the Where2
     base=checkpoints/w2e_cfw_$p.pt
   else
     base=runs_table/w2e_tfr_$p/model.pt
-    if [ ! -f runs_table/w2e_tfr_$p/done ]; then
-      log "train the table model ($p)"
-      local resume; resume=$(resume_flag runs_table/w2e_tfr_$p)
-      $W2E train --data $TRAIN/tsr --method w2e --combo tfr --primitive $p --steps 2880 --val-every 240 \
-          --patience 4 --val-data data/combos/val/table_heldout --threads 1 --calibrate-steps 0 \
-          --no-progress $resume --out runs_table/w2e_tfr_$p
-      touch runs_table/w2e_tfr_$p/done
-    fi
+    mkdir -p runs_table
+    (  # tfr and tsw share it: a second copy of this script (bench/combos.sh tfr beside
+       # bench/combos.sh tsw) waits for the first's training instead of training it again
+      flock 9
+      if [ ! -f runs_table/w2e_tfr_$p/done ]; then
+        log "train the table model ($p)"
+        resume=$(resume_flag runs_table/w2e_tfr_$p)
+        $W2E train --data $TRAIN/tsr --method w2e --combo tfr --primitive $p --steps 2880 \
+            --val-every 240 --patience 4 --val-data data/combos/val/table_heldout --threads 1 \
+            --calibrate-steps 0 --no-progress $resume --out runs_table/w2e_tfr_$p
+        touch runs_table/w2e_tfr_$p/done
+      fi
+    ) 9>runs_table/.lock_$p
   fi
   if [ ! -f $RUNS/w2e_${c}_$p/model.pt ]; then
     log "calibrate the similarity on $c ($p)"

@@ -157,7 +157,7 @@ def test_mean_over_combinations_averages_draws_and_includes_earlier_summaries(tm
     # cfw from an earlier summary (no predictions here): its rows join, the mean's interval
     # is the normal combination of the three half-widths
     earlier = tmp_path / "cfw.json"
-    earlier.write_text(json.dumps({"rows": [
+    earlier.write_text(json.dumps({"config": {"seeds": [0, 100]}, "rows": [
         {"combination": "cfw", "primitive": "push", "method": mth, "budget": 1,
          "metric": "auroc", "n_seeds": 5, "mean": 0.7, "ci_low": 0.6, "ci_high": 0.8}
         for mth in ("none", "random")]}))
@@ -171,6 +171,9 @@ def test_mean_over_combinations_averages_draws_and_includes_earlier_summaries(tm
     assert m["ci_high"] - m["mean"] == pytest.approx(np.sqrt(np.sum(np.square(halves))) / 3)
     assert get[("cfw", "random", 1, "auroc", None)]["source"] == str(earlier)
     assert "intervals combined as independent" in (tmp_path / "a" / "tables.md").read_text()
+    # the header's seeds are this directory's; the included rows name their own
+    assert f"The cfw rows are taken from {earlier} (seeds [0, 100])" in \
+        (tmp_path / "a" / "tables.md").read_text()
     # a run both included and in the predictions files: refused
     earlier.write_text(json.dumps({"rows": [{**get[("csr", "random", 1, "auroc", None)]}]}))
     assert cli.main([*args, "--out", str(tmp_path / "a"), "--include-summary",

@@ -527,9 +527,12 @@ def summarize(out: str | Path, cfg: BenchmarkConfig,
         return r["combination"], r["primitive"], r["method"]
 
     own = {run(r) for r in rows}
+    included = []  # where the included rows come from and the seeds they were made with
     for src in include:
-        taken = [r for r in json.loads(Path(src).read_text())["rows"]
-                 if r["combination"] != "mean"]
+        src_doc = json.loads(Path(src).read_text())
+        taken = [r for r in src_doc["rows"] if r["combination"] != "mean"]
+        included.append({"source": str(src), "seeds": src_doc.get("config", {}).get("seeds"),
+                         "combinations": sorted({r["combination"] for r in taken})})
         twice = own & {run(r) for r in taken}
         if twice:
             raise ValueError(f"{src}: {', '.join(sorted(' '.join(t) for t in twice))} also "
@@ -552,6 +555,8 @@ def summarize(out: str | Path, cfg: BenchmarkConfig,
     if found:  # what the files hold (a --summarize-only call may not repeat --seeds)
         config["seeds"] = sorted(found)
     doc = {"config": config, "rows": rows}
+    if included:
+        doc["included"] = included
     if len(made) > 1:
         doc["run_configs"] = made
     (out / "benchmark.json").write_text(json.dumps(doc, indent=1))
@@ -582,7 +587,10 @@ def benchmark_tables(doc: dict) -> str:
              f"and {cfg['test_objects']} test objects per category. Values in %, mean "
              "[95 % bootstrap interval over test observations / objects and seeds]."
              + (" VALIDATION: judged on held-out explore instances, not the test split."
-                if cfg.get("validate") else ""), ""]
+                if cfg.get("validate") else "")
+             + "".join(f" The {', '.join(i['combinations'])} rows are taken from "
+                       f"{i['source']} (seeds {i['seeds']}); the seeds above are those of "
+                       "the other rows." for i in doc.get("included", [])), ""]
     for combo in sorted({r["combination"] for r in rows}, key=lambda c: (c == "mean", c)):
         for prim in ("push", "pull"):
             sel = [r for r in rows if r["combination"] == combo and r["primitive"] == prim]
