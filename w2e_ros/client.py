@@ -46,6 +46,7 @@ from w2e_msgs.srv import LoadScene, Manipulate, PredictMaps
 from w2e_ros.core.config import ExploreConfig
 from w2e_ros.ros.action_client import LockedActionClient
 from w2e_ros.ros.futures import StackError, WaitTimeoutError, wait_future
+from w2e_ros.ros.peers import PeerWatch
 from w2e_ros.ros.pointcloud import arrays_to_cloud, cloud_to_arrays
 from w2e_ros.ros.qos import LATCHED_QOS, RELIABLE_QOS
 
@@ -168,8 +169,11 @@ class ExploreTask:
 
     def __init__(self, action: LockedActionClient, goal: ExploreAction.Goal,
                  on_progress: Callable[[Step], None] | None, connect: float,
-                 tasks: dict[bytes, ExploreTask]) -> None:
+                 tasks: dict[bytes, ExploreTask],
+                 check: Callable[[], str | None] | None = None) -> None:
+        """``check``: why the planner serving the goal cannot answer any more (PeerWatch.pin)."""
         self._t0 = time.perf_counter()
+        self._check = check
         self._on_progress = on_progress
         self._cv = threading.Condition()
         self._steps: list[Step] = []
@@ -183,7 +187,7 @@ class ExploreTask:
         tasks[bytes(uuid.uuid)] = self
         sent = action.send_goal_async(goal, goal_uuid=uuid)
         try:
-            self._handle = wait_future(sent, connect, "explore (goal)")
+            self._handle = wait_future(sent, connect, "explore (goal)", check=check)
         except StackError as exc:
             raise StackCallError(str(exc)) from exc
         if not self._handle.accepted:
@@ -215,6 +219,8 @@ class ExploreTask:
         learned from; the session continues on the next explore); True if it agreed."""
         if self._handle is None or not self._handle.accepted or self.is_done():
             return False
+        if self._check is not None and self._check():
+            return False  # the planner is gone: nobody to ask (its session log keeps the run)
         try:
             res = wait_future(self._handle.cancel_goal_async(), timeout, "explore (cancel)")
         except StackError:
@@ -229,7 +235,7 @@ class ExploreTask:
         assert self._result is not None
         try:
             r = wait_future(self._result, float("inf") if timeout is None else timeout,
-                            "explore").result
+                            "explore", check=self._check).result
         except WaitTimeoutError as exc:
             raise StackCallError(f"explore: no answer within {timeout:.0f} s") from exc
         except StackError as exc:
@@ -242,6 +248,11 @@ class ExploreTask:
                              float(r.final_mean_similarity), bool(r.reached_similarity_bar),
                              r.checkpoint_path, steps, time.perf_counter() - self._t0,
                              int(r.resumed_from))
+
+
+PEERS = {"explore": "planner_node", "manipulate": "planner_node",
+         "predict_maps": "inference_node", "load_scene": "sim_bridge"}
+"""The servers that announce themselves (``w2e_ros.ros.peers``), by the name the client calls."""
 
 
 class W2EClient:
@@ -262,6 +273,10 @@ class W2EClient:
         self._predict = n.create_client(PredictMaps, "predict_maps")
         self._scene = n.create_client(LoadScene, "load_scene")
         self._reset = n.create_client(Trigger, "reset_model")
+        # which process serves each name: one that dies or restarts while a call waits on it
+        # ends the call within seconds (the planner's explore would otherwise be waited for
+        # until the timeout, 30 min by default)
+        self._peers = {name: PeerWatch(n, name, server) for name, server in PEERS.items()}
         self._lock = threading.Condition()
         self._objects: SegmentedObjects | None = None
         n.create_subscription(SegmentedObjects, "objects", self._on_objects, LATCHED_QOS)
@@ -284,16 +299,23 @@ class W2EClient:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def _call(self, client, request, timeout: float, connect: float = 10.0):
+    def _call(self, name: str, client, request, timeout: float, connect: float = 10.0):
+        """One call of service ``name``; StackCallError when it is not there, does not answer
+        in time, or its server dies or restarts meanwhile."""
         if not client.wait_for_service(timeout_sec=connect):
             raise StackCallError(f"service {client.srv_name} is not available")
+        try:
+            check = self._peers[name].pin(connect) if name in self._peers else None
+        except StackError as exc:
+            raise StackCallError(str(exc)) from exc
         future = client.call_async(request)
         try:
-            return wait_future(future, timeout, client.srv_name)
+            return wait_future(future, timeout, client.srv_name, check=check)
         except WaitTimeoutError as exc:
             client.remove_pending_request(future)
             raise StackCallError(f"{client.srv_name}: no answer within {timeout:.0f} s") from exc
         except StackError as exc:
+            client.remove_pending_request(future)
             raise StackCallError(str(exc)) from exc
 
     def _on_feedback(self, msg) -> None:
@@ -337,7 +359,11 @@ class W2EClient:
                                   object_ids=[int(i) for i in object_ids], primitive=primitive,
                                   budget=int(budget), similarity_bar=float(similarity_bar),
                                   session=session)
-        return ExploreTask(self._explore, goal, on_progress, connect, self._tasks)
+        try:
+            check = self._peers["explore"].pin(connect)
+        except StackError as exc:
+            raise StackCallError(str(exc)) from exc
+        return ExploreTask(self._explore, goal, on_progress, connect, self._tasks, check)
 
     def explore(self, category: str, instances: Iterable[int] = (), primitive: str = "pull",
                 budget: int = 5, similarity_bar: float = ExploreConfig.similarity_bar,
@@ -366,7 +392,7 @@ class W2EClient:
         req = Manipulate.Request(category=category, instances=[int(i) for i in instances],
                                  object_ids=[int(i) for i in object_ids], primitive=primitive)
         t0 = time.perf_counter()
-        r = self._call(self._manipulate, req, timeout)
+        r = self._call("manipulate", self._manipulate, req, timeout)
         outs = [Outcome(Act.from_msg(i), float(a), bool(o.valid), bool(o.success),
                         float(o.motion), o.moved_part, o.reason, list(o.joint_motion))
                 for i, a, o in zip(r.interactions, r.predicted_affordances, r.outcomes,
@@ -381,7 +407,8 @@ class W2EClient:
         objs = [SceneObject(category=category, instance=i,
                             seed=int(seeds[k]) if seeds is not None else 0)
                 for k, i in enumerate(inst)]
-        r = self._call(self._scene, LoadScene.Request(objects=objs, clear=clear), timeout)
+        r = self._call("load_scene", self._scene, LoadScene.Request(objects=objs, clear=clear),
+                       timeout)
         if not r.success:
             raise StackCallError(f"load_scene: {r.message}")
         return [int(i) for i in r.object_ids]
@@ -423,7 +450,7 @@ class W2EClient:
             clouds=[arrays_to_cloud(c.points, c.normals, frame_id="world") for c in clouds],
             object_ids=[int(c.object_id) for c in clouds], primitive=primitive,
             num_directions=int(num_directions), num_best=int(num_best), seed=int(seed))
-        r = self._call(self._predict, req, timeout)
+        r = self._call("predict_maps", self._predict, req, timeout)
         if not r.success:
             raise StackCallError(f"predict_maps: {r.message}")
         maps = []
@@ -437,7 +464,7 @@ class W2EClient:
 
     def reset_model(self, timeout: float = 60.0) -> str:
         """Reload the inference node's checkpoints (forget what was explored)."""
-        r = self._call(self._reset, Trigger.Request(), timeout)
+        r = self._call("reset_model", self._reset, Trigger.Request(), timeout)
         if not r.success:
             raise StackCallError(f"reset_model: {r.message}")
         return r.message

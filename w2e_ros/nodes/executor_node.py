@@ -241,17 +241,10 @@ class GripperExecutorNode(Node):
         s = self.settings
         if not self._robot.wait_for_server(timeout_sec=s.server_timeout_s):
             return f"robot action {s.robot_action!r} is not available"
-        # after its death the old endpoints stay on the graph: a goal sent before the
-        # restarted process serves is lost (PeerWatch.wait_serving)
-        if not self._robot_peer.wait_serving(s.server_timeout_s):
-            return (f"the robot side died and no new process announced {s.robot_action!r} "
-                    f"within {s.server_timeout_s:.0f} s")
-        robot, since = self._robot_peer.current(), time.time_ns()
-
-        def check() -> str | None:
-            return self._robot_peer.check(robot, since)
-
         try:
+            # after a death the old endpoints stay on the graph: a goal sent before the
+            # restarted process serves is lost, so wait for its announcement first
+            check = self._robot_peer.pin(s.server_timeout_s)
             sent = wait_future(self._robot.send_goal_async(goal, feedback_callback=on_feedback),
                                s.server_timeout_s, s.robot_action, check=check)
             if not sent.accepted:

@@ -76,7 +76,7 @@ from w2e_ros.ros.explore_service import (  # noqa: F401 - RosModel, RosWorld: th
 )
 from w2e_ros.ros.futures import StackError, wait_future
 from w2e_ros.ros.params import declare_typed_parameters, describe, param, setting_param
-from w2e_ros.ros.peers import PeerWatch
+from w2e_ros.ros.peers import PeerWatch, announce
 from w2e_ros.ros.qos import LATCHED_QOS, RELIABLE_QOS
 from w2e_ros.ros.spin import run_node
 from w2e_ros.ros.state import scoped_dir, state_scope
@@ -206,6 +206,7 @@ class PlannerNode(Node):
         self.create_service(Manipulate, "manipulate", self.on_manipulate,
                             callback_group=self.user_group)
         self.explore_service = ExploreService(self)
+        announce(self, ["explore", "manipulate"])  # its users see a restart or death at once
         self.get_logger().info(f"planner ready; {describe(self.settings)}")
 
     # --- talking to the other nodes ---------------------------------------------------------

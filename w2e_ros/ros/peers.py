@@ -23,7 +23,7 @@ import os
 import socket
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 from rclpy.duration import Duration
 from rclpy.event_handler import QoSLivelinessChangedInfo, SubscriptionEventCallbacks
@@ -37,6 +37,8 @@ from rclpy.qos import (
     ReliabilityPolicy,
 )
 from std_msgs.msg import String
+
+from w2e_ros.ros.futures import PeerLostError
 
 LEASE_S = 2.0
 """Liveliness lease of the announcements (s): a killed server is seen dead within it."""
@@ -151,6 +153,17 @@ class PeerWatch:
                     return False
                 self._lock.wait(min(0.2, left))  # _is_dead also changes with time
             return True
+
+    def pin(self, timeout: float) -> Callable[[], str | None]:
+        """Before one request: wait for a live server (:meth:`wait_serving`), pin the instance
+        serving now and return the check that says why it cannot answer any more (for
+        ``wait_future``'s ``check``). Raises :class:`PeerLostError` when the server died and
+        none came back within ``timeout`` s."""
+        if not self.wait_serving(timeout):
+            raise PeerLostError(f"{self.name}: {self.server} died and no new process "
+                                f"announced itself within {timeout:.0f} s")
+        pinned, since = self.current(), time.time_ns()
+        return lambda: self.check(pinned, since)
 
     def check(self, pinned: str | None, since_ns: int = 0) -> str | None:
         """Why the instance ``pinned`` (from :meth:`current` at ``since_ns``, wall clock) cannot
