@@ -52,6 +52,15 @@ resume_flag() {  # --resume when RUN has a checkpoint to go on from; else start 
 # 2. models [table w2e 25-35 min, Where2Act 13-20 min each]
 model() {  # model COMBO PRIM: make $RUNS/w2e_COMBO_PRIM/model.pt and the Where2Act baseline
   local c=$1 p=$2 base
+  # the baseline first: it needs no table model, so a second copy of this script trains it
+  # while the first holds the table model's lock
+  if [ ! -f $RUNS/where2act_${c}_$p/done ]; then
+    log "train the Where2Act baseline ($c, $p)"
+    local resume; resume=$(resume_flag $RUNS/where2act_${c}_$p)
+    $W2E train --data $TRAIN --method where2act --combo "$c" --primitive "$p" --steps 1440 --val-every 240 \
+        --patience 3 --threads 1 --no-progress --val-data $VAL $resume --out $RUNS/where2act_${c}_$p
+    touch $RUNS/where2act_${c}_$p/done
+  fi
   if [ "$c" = csr ]; then
     base=checkpoints/w2e_cfw_$p.pt
   else
@@ -74,13 +83,6 @@ model() {  # model COMBO PRIM: make $RUNS/w2e_COMBO_PRIM/model.pt and the Where2
     log "calibrate the similarity on $c ($p)"
     mkdir -p $RUNS/w2e_${c}_$p
     $W2E calibrate --model "$base" --combo "$c" --data $TRAIN --threads 1 --out $RUNS/w2e_${c}_$p/model.pt
-  fi
-  if [ ! -f $RUNS/where2act_${c}_$p/done ]; then
-    log "train the Where2Act baseline ($c, $p)"
-    local resume; resume=$(resume_flag $RUNS/where2act_${c}_$p)
-    $W2E train --data $TRAIN --method where2act --combo "$c" --primitive "$p" --steps 1440 --val-every 240 \
-        --patience 3 --threads 1 --no-progress --val-data $VAL $resume --out $RUNS/where2act_${c}_$p
-    touch $RUNS/where2act_${c}_$p/done
   fi
 }
 
