@@ -103,10 +103,11 @@ for c in $COMBOS; do
   done
 done
 
-# 4. the tables: the three combinations beside cfw (bench/results/benchmark.json)
+# 4. the tables: the three combinations beside cfw (bench/results/benchmark.json); only the
+# finished runs (a second copy of this script may still be running one)
 if ls $RES/*/benchmark.json >/dev/null 2>&1; then
   $W2E benchmark --summarize-only --combos $COMBOS --budgets 1 2 5 --methods $METHODS \
-      --out $RES/summary --merge $(ls -d $RES/*_*_* | grep -v summary) \
+      --out $RES/summary --merge $(dirname $(ls $RES/*_*_*/benchmark.json) | grep -v summary) \
       --include-summary bench/results/benchmark.json
 fi
 log "done"
