@@ -154,8 +154,8 @@ def test_the_client_sees_the_planner_die_during_explore(setup):
     assert time.monotonic() - t0 < 30
 
 
-def test_a_call_after_the_planner_died_waits_for_the_respawned_one(setup):
-    client, env, planners = setup
+def _dead_planner(client: W2EClient, env: dict[str, str], planners: list[Planner]) -> None:
+    """A planner that announced itself, then was SIGKILLed: the client has seen it die."""
     planners.append(first := Planner(env))
     _announced(client, "manipulate")
     first.kill()
@@ -163,6 +163,11 @@ def test_a_call_after_the_planner_died_waits_for_the_respawned_one(setup):
     while client._peers["manipulate"].current() is not None and time.monotonic() < end:
         time.sleep(0.05)
     assert client._peers["manipulate"].current() is None, "the death was not seen"
+
+
+def test_a_call_after_the_planner_died_waits_for_the_respawned_one(setup):
+    client, env, planners = setup
+    _dead_planner(client, env, planners)
     out: dict = {}
     thread = threading.Thread(target=lambda: out.setdefault(
         "result", client.manipulate("door", timeout=60)), daemon=True)
@@ -174,12 +179,7 @@ def test_a_call_after_the_planner_died_waits_for_the_respawned_one(setup):
 
 def test_a_call_after_the_planner_died_for_good_fails_clearly(setup):
     client, env, planners = setup
-    planners.append(first := Planner(env))
-    _announced(client, "manipulate")
-    first.kill()
-    end = time.monotonic() + DETECT_S
-    while client._peers["manipulate"].current() is not None and time.monotonic() < end:
-        time.sleep(0.05)
+    _dead_planner(client, env, planners)
     t0 = time.monotonic()
     # the dead one's endpoints may still be on the graph (wait_for_service says yes): the
     # announcement is what is waited for; once the graph forgets it, "not available"
