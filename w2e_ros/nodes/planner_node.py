@@ -227,13 +227,10 @@ class PlannerNode(Node):
 
     def wait_serving(self, name: str) -> None:
         """Wait for a restarted server of ``name`` to announce itself before sending to it
-        (:meth:`PeerWatch.wait_serving`: a request sent to the dead one's endpoints is lost)."""
-        watch = self.peers.get(name)
-        wait = self.settings.restart_timeout_s
-        if watch is not None and not watch.wait_serving(wait):
-            raise StackError(f"{name}: {watch.server} died and no new process announced "
-                             f"itself within {wait:.0f} s (is it respawned? w2e bringup "
-                             "--respawn restarts it)")
+        (:meth:`PeerWatch.require_serving`: a request sent to the dead one's endpoints is
+        lost)."""
+        if (watch := self.peers.get(name)) is not None:
+            watch.require_serving(self.settings.restart_timeout_s)
 
     def call(self, client, request, what: str, timeout: float | None = None):
         """One service call with a timeout; a refusal (success=false) raises StackError, and

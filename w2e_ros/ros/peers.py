@@ -154,14 +154,18 @@ class PeerWatch:
                 self._lock.wait(min(0.2, left))  # _is_dead also changes with time
             return True
 
-    def pin(self, timeout: float) -> Callable[[], str | None]:
-        """Before one request: wait for a live server (:meth:`wait_serving`), pin the instance
-        serving now and return the check that says why it cannot answer any more (for
-        ``wait_future``'s ``check``). Raises :class:`PeerLostError` when the server died and
-        none came back within ``timeout`` s."""
+    def require_serving(self, timeout: float) -> None:
+        """:meth:`wait_serving`, raising :class:`PeerLostError` when no live server came."""
         if not self.wait_serving(timeout):
             raise PeerLostError(f"{self.name}: {self.server} died and no new process "
-                                f"announced itself within {timeout:.0f} s")
+                                f"announced itself within {timeout:.0f} s (is it respawned? "
+                                "w2e bringup --respawn restarts it)")
+
+    def pin(self, timeout: float) -> Callable[[], str | None]:
+        """Before one request: wait for a live server (:meth:`require_serving`), pin the
+        instance serving now and return the check that says why it cannot answer any more
+        (for ``wait_future``'s ``check``)."""
+        self.require_serving(timeout)
         pinned, since = self.current(), time.time_ns()
         return lambda: self.check(pinned, since)
 
