@@ -103,11 +103,12 @@ for c in $COMBOS; do
   done
 done
 
-# 4. the tables: the three combinations beside cfw (bench/results/benchmark.json); only the
-# finished runs (a second copy of this script may still be running one)
+# 4. the tables: the three combinations beside cfw (its summary of 2026-12-05; the committed
+# bench/results/benchmark.json holds all four already); only the finished runs (a second copy
+# of this script may still be running one)
 if ls $RES/*/benchmark.json >/dev/null 2>&1; then
   $W2E benchmark --summarize-only --combos $COMBOS --budgets 1 2 5 --methods $METHODS \
       --out $RES/summary --merge $(dirname $(ls $RES/*_*_*/benchmark.json) | grep -v summary) \
-      --include-summary bench/results/benchmark.json
+      --include-summary bench/results/cfw_2026-12-05/benchmark.json
 fi
 log "done"

@@ -125,7 +125,7 @@ def render_combos(doc: dict, budget: int | None = None) -> str:
 
 
 BLOCK = re.compile(r"(<!-- benchmark(?:-b(\d+))?(?:-([a-z]+))?:begin -->)"
-                   r"\n.*?\n(<!-- benchmark[-\w]*:end -->)", re.S)
+                   r"\n(?:.*?\n)??(<!-- benchmark[-\w]*:end -->)", re.S)  # an empty block too
 
 
 def rewrite(text: str, doc: dict) -> str:

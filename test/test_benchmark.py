@@ -169,10 +169,12 @@ def test_mean_over_combinations_averages_draws_and_includes_earlier_summaries(tm
     assert m["combinations"] == ["cfw", "csr", "tfr"] and m["ci"] == "normal"
     halves = [0.1] + [(p["ci_high"] - p["ci_low"]) / 2 for p in parts]
     assert m["ci_high"] - m["mean"] == pytest.approx(np.sqrt(np.sum(np.square(halves))) / 3)
-    assert get[("cfw", "random", 1, "auroc", None)]["source"] == str(earlier)
+    inc = json.loads((tmp_path / "a" / "benchmark.json").read_text())["included"]
+    assert inc == [{"source": str(earlier), "seeds": [0, 100], "combinations": ["cfw"],
+                    "primitives": ["push"]}]
     assert "intervals combined as independent" in (tmp_path / "a" / "tables.md").read_text()
     # the header's seeds are this directory's; the included rows name their own
-    assert f"The cfw rows are taken from {earlier} (seeds [0, 100])" in \
+    assert f"- cfw push: {earlier}, seeds [0, 100]" in \
         (tmp_path / "a" / "tables.md").read_text()
     # a run both included and in the predictions files: refused
     earlier.write_text(json.dumps({"rows": [{**get[("csr", "random", 1, "auroc", None)]}]}))
@@ -214,15 +216,47 @@ def test_summary_states_the_settings_the_runs_were_made_with(tmp_path):
         _predictions(tmp_path / d / "predictions_cfw_pull.npz", methods, y, 1)
         made = asdict(BenchmarkConfig(out=str(tmp_path / d), combos=("cfw",), methods=methods,
                                       seeds=(0,), budgets=(1,)))
-        made["explore"].update(anchor=0.01, check_approach=False, finetune_steps=steps)
+        made["explore"].update(check_approach=False)
+        made["explore"]["finetuning"].update(anchor=0.01, finetune_steps=steps)
         (tmp_path / d / "config.json").write_text(json.dumps(made, default=str))
     assert cli.main(["benchmark", "--summarize-only", "--combos", "cfw", "--primitives", "pull",
                      "--budgets", "1", "--bootstrap", "10", "--out", str(tmp_path / "sum"),
                      "--merge", str(tmp_path / "a"), f"{tmp_path / 'b'}:similarity"]) == 0
     doc = json.loads((tmp_path / "sum" / "benchmark.json").read_text())
     cfg = doc["config"]
-    assert cfg["explore"]["anchor"] == 0.01 and cfg["explore"]["check_approach"] is False
+    ft = cfg["explore"]["finetuning"]
+    assert ft["anchor"] == 0.01 and cfg["explore"]["check_approach"] is False
     assert cfg["methods"] == ["none", "random", "similarity"]
-    assert cfg["explore"]["finetune_steps"] == {"differs": {str(tmp_path / "a"): 2000,
-                                                            str(tmp_path / "b"): 500}}
+    assert ft["finetune_steps"] == {"differs": {str(tmp_path / "a"): 2000,
+                                                str(tmp_path / "b"): 500}}
     assert set(doc["run_configs"]) == {str(tmp_path / "a"), str(tmp_path / "b")}
+
+
+def test_summary_of_included_summaries_states_their_settings(tmp_path):
+    """A table made only from earlier summaries (the four-combination merge) states what
+    those runs were made with, not the summarizing call's defaults."""
+    docs = []
+    for combo, seeds in (("cfw", [0, 100]), ("tfr", [0, 1, 2])):
+        made = asdict(BenchmarkConfig(combos=(combo,), methods=("none", "random"),
+                                      seeds=tuple(seeds), budgets=(1, 5)))
+        # not the defaults, and cfw's in the flat layout of results older than the nesting
+        if combo == "cfw":
+            made["explore"] = {**made["explore"], **made["explore"].pop("finetuning")}
+        made["explore"].update(check_approach=False, prior=2.5)
+        docs.append(tmp_path / f"{combo}.json")
+        docs[-1].write_text(json.dumps({"config": made, "rows": [
+            {"combination": combo, "primitive": "pull", "method": m, "budget": b,
+             "metric": "auroc", "n_seeds": len(seeds), "mean": 0.7, "ci_low": 0.6,
+             "ci_high": 0.8} for m in ("none", "random") for b in (1, 5)]}, default=str))
+    assert cli.main(["benchmark", "--summarize-only", "--primitives", "pull", "--budgets", "1",
+                     "5", "--methods", "none", "random", "--out", str(tmp_path / "sum"),
+                     "--include-summary", *map(str, docs)]) == 0
+    doc = json.loads((tmp_path / "sum" / "benchmark.json").read_text())
+    cfg = doc["config"]
+    assert cfg["explore"]["check_approach"] is False
+    assert cfg["explore"]["finetuning"]["prior"] == 2.5  # one setting, whatever the layout
+    assert cfg["seeds"] == [0, 100, 1, 2] and cfg["combos"] == ["cfw", "tfr"]
+    assert set(doc["run_configs"]) == set(map(str, docs))
+    head = (tmp_path / "sum" / "tables.md").read_text().split("## ")[0]
+    assert "Seeds [" not in head  # no rows of its own: each source names its seeds
+    assert f"- cfw pull: {docs[0]}, seeds [0, 100]" in head

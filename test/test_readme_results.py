@@ -117,3 +117,21 @@ def test_methods_follow_the_summary_config_order():
     names = [ln.split(" | ")[0][2:] for ln in render(doc).splitlines()
              if ln.startswith("| ") and not ln.startswith("| method")]
     assert names == ["none", "random", "fulldata", "odd"]
+
+
+def test_an_empty_block_is_filled_and_leaves_the_next_block_alone():
+    """A block written as begin/end with nothing between (a new section) is rendered in
+    place; it must not swallow the text up to the next block's end."""
+    sys.path.insert(0, str(ROOT / "bench"))
+    try:
+        from render_readme import rewrite
+    finally:
+        sys.path.remove(str(ROOT / "bench"))
+    rows = [{"combination": "cfw", "primitive": "pull", "method": m, "budget": 5,
+             "metric": "auroc", "n_seeds": 3, "mean": v, "ci_low": v - 0.1, "ci_high": v + 0.1}
+            for m, v in (("none", 0.6), ("random", 0.7))]
+    text = ("<!-- benchmark:begin -->\n<!-- benchmark:end -->\nkept between\n"
+            "<!-- benchmark-combos:begin -->\nold\n<!-- benchmark-combos:end -->\n")
+    new = rewrite(text, {"config": {"methods": ["none", "random"]}, "rows": rows})
+    assert "kept between" in new and "old" not in new
+    assert new.count("<!-- benchmark:end -->") == 1 and "| random | 70.0 [60.0, 80.0] |" in new

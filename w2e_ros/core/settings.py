@@ -177,6 +177,24 @@ def flatten(d: Mapping[str, Any], cls: type) -> dict[str, Any]:
     return out
 
 
+def nest(flat: Mapping[str, Any], cls: type) -> dict[str, Any]:
+    """``flat`` in the nesting of ``asdict(cls(...))``, holding only the settings it gives (no
+    defaults filled in: an older file's record stays what it said); names ``cls`` lacks stay
+    at the top."""
+    def build(c: type) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for f, tp in _fields(c):
+            if _nested(tp):
+                if sub := build(tp):
+                    out[f.name] = sub
+            elif f.name in flat:
+                out[f.name] = flat[f.name]
+        return out
+
+    known = leaf_fields(cls)
+    return {**build(cls), **{k: v for k, v in flat.items() if k not in known}}
+
+
 def from_dict(cls: type[T], d: Mapping[str, Any], renamed: Mapping[str, str] = {}) -> T:
     """``cls`` from its ``asdict``, nested or flat; ``renamed``: old name -> setting name for
     what older files stored under another name. Unknown keys are an error."""

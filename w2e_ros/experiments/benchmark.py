@@ -35,6 +35,7 @@ import numpy as np
 import torch
 
 from w2e_ros.core.categories import load_categories
+from w2e_ros.core.config import SETTINGS_RENAMED, ExploreConfig
 from w2e_ros.core.data import InteractionData
 from w2e_ros.core.evaluate import (
     SuccessProbe,
@@ -44,6 +45,7 @@ from w2e_ros.core.evaluate import (
 from w2e_ros.core.explore import fewshot
 from w2e_ros.core.metrics import auroc, average_precision, fscore, r_precision
 from w2e_ros.core.model import W2EModel, load_model
+from w2e_ros.core.settings import flatten, nest
 from w2e_ros.core.strategies import STRATEGIES, get_strategy
 from w2e_ros.core.training import replay_data
 from w2e_ros.experiments.backends import Backend, LocalBackend, resolve
@@ -500,10 +502,16 @@ def run_configs(out: str | Path, sources: Sequence[str | Path] = ()) -> dict[str
 
 
 def _current_names(made: dict) -> dict:
-    """A stored run configuration under today's setting names (BENCHMARK_RENAMED), so runs
-    made before a rename merge into one setting."""
-    return {BENCHMARK_RENAMED.get(k, k): v for k, v in made.items()
-            if k not in BENCHMARK_DROPPED}
+    """A stored run configuration under today's setting names (BENCHMARK_RENAMED,
+    SETTINGS_RENAMED) and nesting, so runs made before a rename or the fine-tuning settings'
+    split merge into one setting."""
+    out = {BENCHMARK_RENAMED.get(k, k): v for k, v in made.items()
+           if k not in BENCHMARK_DROPPED}
+    if isinstance(out.get("explore"), dict):  # flat before the fine-tuning settings nested
+        flat = flatten(out["explore"], ExploreConfig)
+        out["explore"] = nest({SETTINGS_RENAMED.get(k, k): v for k, v in flat.items()},
+                              ExploreConfig)
+    return out
 
 
 def summarize(out: str | Path, cfg: BenchmarkConfig,
@@ -519,6 +527,7 @@ def summarize(out: str | Path, cfg: BenchmarkConfig,
     from w2e_ros.core.viz import metric_curves
 
     out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)  # a table of included summaries alone is new
     rng = np.random.default_rng(0)
     rows: list[dict] = []
     for path in sorted(out.glob("predictions_*.npz")):
@@ -528,26 +537,32 @@ def summarize(out: str | Path, cfg: BenchmarkConfig,
 
     own = {run(r) for r in rows}
     included = []  # where the included rows come from and the seeds they were made with
+    made = run_configs(out, sources)  # what every run was made with, the included ones too
     for src in include:
         src_doc = json.loads(Path(src).read_text())
+        # each run's own record where the summary kept them (its config is already a merge)
+        made.update({d: _current_names(c) for d, c in src_doc.get("run_configs", {}).items()}
+                    or ({str(src): _current_names(src_doc["config"])}
+                        if src_doc.get("config") else {}))
         taken = [r for r in src_doc["rows"] if r["combination"] != "mean"]
         included.append({"source": str(src), "seeds": src_doc.get("config", {}).get("seeds"),
-                         "combinations": sorted({r["combination"] for r in taken})})
+                         "combinations": sorted({r["combination"] for r in taken}),
+                         "primitives": sorted({r["primitive"] for r in taken})})
         twice = own & {run(r) for r in taken}
         if twice:
             raise ValueError(f"{src}: {', '.join(sorted(' '.join(t) for t in twice))} also "
                              f"in the predictions files of {out}: include it once")
-        rows += [{**r, "source": str(src)} for r in taken]
+        rows += taken  # where from: doc["included"] (a key per row would double the file)
         own |= {run(r) for r in taken}
     combos = sorted({r["combination"] for r in rows})
     if len(combos) > 1:
         rows += mean_over_combinations(rows, combos)
     rows = [{k: v for k, v in r.items() if k != DRAWS} for r in rows]
-    # what the runs were made with (their own config.json), not the flags of a
-    # --summarize-only call, which need not repeat them
-    made = run_configs(out, sources)
-    config = (_merge_configs(made) if made
-              else json.loads(json.dumps(asdict(cfg), default=str)))
+    # what the runs were made with (their own config.json, an included summary's config),
+    # not the flags of a --summarize-only call, which need not repeat them; the flags fill
+    # only what no run states
+    flags = json.loads(json.dumps(asdict(cfg), default=str))
+    config = {**flags, **_merge_configs(made)} if made else flags
     found: set[int] = set()
     for path in out.glob("predictions_*.npz"):
         with np.load(path) as z:  # the file's index only, no arrays read
@@ -581,16 +596,24 @@ def benchmark_tables(doc: dict) -> str:
              "rprecision": "R-precision (F-score at as many "
              "predicted successes as there are)", "auroc": "AUROC", "ap": "avg precision",
              "success": "sample success", "simcorr_auroc": "similarity AUROC (correct)"}
+    included = doc.get("included", [])
+    taken = {(c, p) for i in included for c in i["combinations"] for p in i.get("primitives", [])}
+    own = any((r["combination"], r["primitive"]) not in taken for r in rows
+              if r["combination"] != "mean")
     lines = ["# Benchmark", "",
-             f"Seeds {cfg['seeds']}; budgets {cfg['budgets']} interactions per explore object "
+             (f"Seeds {cfg['seeds']}; " if own or not included else "")
+             + f"budgets {cfg['budgets']} interactions per explore object "
              f"(0 = before exploring); mode {cfg['mode']}; {cfg['explore_objects']} explore "
              f"and {cfg['test_objects']} test objects per category. Values in %, mean "
              "[95 % bootstrap interval over test observations / objects and seeds]."
              + (" VALIDATION: judged on held-out explore instances, not the test split."
                 if cfg.get("validate") else "")
-             + "".join(f" The {', '.join(i['combinations'])} rows are taken from "
-                       f"{i['source']} (seeds {i['seeds']}); the seeds above are those of "
-                       "the other rows." for i in doc.get("included", [])), ""]
+             + (" Rows taken from earlier summaries, with the seeds they were made with"
+                + (" (the seeds above are those of the other rows)" if own else "") + ":"
+                if included else ""), ""]
+    lines += [f"- {', '.join(i['combinations'])} {', '.join(i.get('primitives', []))}: "
+              f"{i['source']}, seeds {i['seeds']}" for i in included]
+    lines += [""] if included else []
     for combo in sorted({r["combination"] for r in rows}, key=lambda c: (c == "mean", c)):
         for prim in ("push", "pull"):
             sel = [r for r in rows if r["combination"] == combo and r["primitive"] == prim]
