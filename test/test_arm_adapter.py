@@ -183,7 +183,7 @@ def test_an_arm_blocked_after_the_grasp_is_a_failed_trial_and_holds_where_it_sto
     controller?" right after the controller had run the previous piece. The arm moved and
     was stopped: a trial that failed (valid, not reached), the cause named, the arm held."""
     robot = Robot(tmp_path, "dry_run:=false", "gripper_action:=''", "velocity_scale:=1.0",
-                  "cartesian_speed:=0.5", "settle_s:=5.0", block_piece=1)
+                  "cartesian_speed:=0.5", "settle_s:=30.0", block_piece=1)
     try:
         t0 = time.monotonic()
         res = robot.follow(REACHABLE)
@@ -197,7 +197,9 @@ def test_an_arm_blocked_after_the_grasp_is_a_failed_trial_and_holds_where_it_sto
         hold = robot.commanded[-1]
         assert len(hold.points) == 1
         np.testing.assert_allclose(hold.points[0].positions, robot.q, atol=1e-9)
-        assert took < 5.0  # seen when the arm stopped, not settle_s after the plan's end
+        # seen when the arm stopped, not settle_s (30 s) after the plan's end: 4.5-8.4 s
+        # measured on the 2-core machine (the pieces before the block included)
+        assert took < 20.0
     finally:
         robot.close()
 

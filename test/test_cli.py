@@ -137,7 +137,7 @@ def test_flags_reach_the_config_without_copies():
 
 def test_results_written_before_the_split_read_back():
     """Committed results store ``asdict(ExploreConfig)`` flat, the bar as sim_bar."""
-    doc = json.loads((ROOT / "bench" / "results" / "combos_2026-12-03" / "benchmark.json")
+    doc = json.loads((ROOT / "bench" / "results" / "default_finetune" / "benchmark.json")
                      .read_text())
     flat = doc["config"]["explore"]
     assert "sim_bar" in flat and "finetune_steps" in flat

@@ -87,7 +87,10 @@ def test_on_ray_cast_clouds_the_orders_part_only_at_ties(category: str) -> None:
         before = cloud[ref[:i]]
         far = [np.min(((before - cloud[j]) ** 2).sum(1)) for j in (ref[i], ours[i])]
         assert far[0] == pytest.approx(far[1], rel=1e-6, abs=1e-12)
-    assert np.mean(ours == ref) > 0.95  # measured: 2, 3 and 7 of 1,024 positions differ
+    # after a tie the two orders go on from different samples: measured 2, 3 and 7 (kettle)
+    # of 1,024 positions differ with one fpsample build, 2, 3 and 85 with one built from
+    # source on another machine (floating-point contraction decides its ties)
+    assert np.mean(ours == ref) > 0.85
     # and from point 0, as the model's fallback runs, the coverage is fpsample's
     zero = farthest_point_sample_torch(torch.from_numpy(cloud)[None], n)[0].numpy()
     (big_r, mean_r), (big, mean) = _coverage(cloud, ref), _coverage(cloud, zero)

@@ -189,8 +189,8 @@ def test_listener_reads_a_tree_published_by_another_process(tmp_path):
         old = type("Stamp", (), {"sec": 1_699_999_990, "nanosec": 0})()
         t = time.monotonic()
         with pytest.raises(TfError, match="'panda_link0' -> 'panda_link1'.*too old"):
-            listener.lookup("world", "camera_optical_frame", old, timeout_s=5.0)
-        assert time.monotonic() - t < 1.0
+            listener.lookup("world", "camera_optical_frame", old, timeout_s=20.0)
+        assert time.monotonic() - t < 5.0  # not the 20 s timeout (1.1 s seen under load)
     finally:
         exe.shutdown()
         node.destroy_node()
