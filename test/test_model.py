@@ -220,3 +220,28 @@ def test_network_flags_reach_the_model_config():
     with pytest.raises(ValueError, match="one value per set-abstraction level"):
         from_namespace(ModelConfig, build_parser().parse_args(
             ["train", "--data", "d", "--sa-npoint", "128", "32", "8"]))
+
+
+def test_features_without_the_last_relu_are_signed_and_the_checkpoint_says_so(tmp_path):
+    """`--feat-activation none` drops the encoder's last ReLU (measured: with it half the
+    shipped pull model's features never fire): the same weights give the features before the
+    ReLU, a checkpoint rebuilds the variant it was trained as, and the default is unchanged."""
+    from w2e_ros.cli import build_parser
+    from w2e_ros.core.settings import from_namespace
+
+    small = dict(num_points=256, sa_npoint=(64, 16, 8, 4))
+    a = build_parser().parse_args(["train", "--data", "d", "--feat-activation", "none"])
+    assert from_namespace(ModelConfig, a).feat_activation == "none"
+    torch.manual_seed(0)
+    relu = W2EModel(ModelConfig(**small)).eval()
+    signed = W2EModel(ModelConfig(**small, feat_activation="none")).eval()
+    signed.load_state_dict(relu.state_dict())  # the ReLU has no weights
+    x = _cloud(1, 256)
+    with torch.no_grad():
+        f, g = relu.encode(x), signed.encode(x)
+    assert (f >= 0).all() and (g < 0).any()
+    torch.testing.assert_close(f, g.clamp(min=0))
+    loaded, _ = load_model(save_model(tmp_path / "m.pt", signed), "cpu")
+    assert loaded.cfg.feat_activation == "none"
+    with torch.no_grad():
+        torch.testing.assert_close(loaded.encode(x), g)

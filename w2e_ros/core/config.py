@@ -21,7 +21,8 @@ from dataclasses import asdict, dataclass, field
 from w2e_ros.core.primitives import BASE_PRIMITIVES
 from w2e_ros.core.settings import from_dict, setting
 
-NETWORK_FLAGS = ("head_layers", "xyz_features", "sa_npoint", "sa_radius", "local_k")
+NETWORK_FLAGS = ("head_layers", "xyz_features", "sa_npoint", "sa_radius", "local_k",
+                 "feat_activation")
 """The settings of ``ModelConfig`` that ``w2e train`` and ``w2e ceiling fit`` take as flags; the
 others are fixed by the architecture (or, ``num_points``, by the collection)."""
 
@@ -55,6 +56,10 @@ class ModelConfig:
     local_k: int = setting(0, "> 0: every point carries a descriptor of its k nearest points")
     # (32, 64) cost 3.5x the time for no measured gain
     local_mlp: tuple[int, ...] = setting((16, 32), "widths of the local descriptor's PointNet")
+    feat_activation: str = setting(
+        "relu", "the encoder's last layer: relu (the reference's) or none (normalised, signed "
+        "features: with relu half the shipped pull model's 128 features never fire)",
+        choices=("relu", "none"))
     norm: str = setting("group", "normalisation layers (see pointnet2._norm for why group)",
                         choices=("group", "batch"))
     norm_groups: int = setting(8, "groups of the group normalisation")

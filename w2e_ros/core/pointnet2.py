@@ -105,6 +105,8 @@ class PointNet2Encoder(nn.Module):
             c = mlp[-1]
         self.fp = nn.ModuleList(fp)
         self.out = _mlp(c, (cfg.feat_dim,), cfg, dims=1)
+        if cfg.feat_activation == "none":  # the ReLU has no weights: checkpoints load either way
+            self.out = self.out[:-1]
 
     def abstract(self, xyz: torch.Tensor) -> tuple[list[torch.Tensor], list[torch.Tensor | None]]:
         """The set-abstraction levels: points (B, N_l, 3) and features (B, N_l, C_l) per level,
