@@ -7,7 +7,9 @@ novel category and per interaction:
 
 * ``similarity``: the model's similarity head;
 * ``knn``: closeness of the contact point's encoder feature to the training categories' contact
-  features (minus the mean cosine distance to its k nearest bank features);
+  features: minus the mean distance to its k nearest bank features, each feature standardised
+  by the bank's mean and spread (cosine closeness is ~1 for every pair: the features share a
+  large common direction);
 * ``confidence``: |p - 0.5| of the affordance itself.
 
 For each it reports the rank correlation, across the novel categories, of the category's mean
@@ -39,7 +41,7 @@ SCORES = ("similarity", "knn", "confidence")
 
 
 def contact_features(model, data: InteractionData) -> torch.Tensor:
-    """(K, F) unit encoder features at each interaction's contact point."""
+    """(K, F) encoder features at each interaction's contact point."""
     out = []
     for s in range(0, data.num_observations, 16):
         rows = np.flatnonzero((data.obs_index >= s) & (data.obs_index < s + 16))
@@ -49,20 +51,35 @@ def contact_features(model, data: InteractionData) -> torch.Tensor:
     f = torch.zeros(data.num_interactions, model.cfg.feat_dim)
     for rows, x in out:
         f[torch.from_numpy(rows)] = x.cpu()
-    return torch.nn.functional.normalize(f, dim=1)
+    return f
 
 
 def knn_closeness(query: torch.Tensor, bank: torch.Tensor, k: int) -> np.ndarray:
-    """Minus the mean cosine distance to the k nearest bank rows (higher = more familiar)."""
+    """Minus the mean distance to the k nearest bank rows, per feature dimension, in the
+    bank's standardised units (higher = more familiar)."""
+    mu, sd = bank.mean(0), bank.std(0) + 1e-6
+    q, b = (query - mu) / sd, (bank - mu) / sd
     out = []
-    for s in range(0, len(query), 2048):
-        sim = query[s:s + 2048] @ bank.T
-        out.append(sim.topk(k, dim=1).values.mean(1) - 1.0)
+    for s in range(0, len(q), 1024):
+        d = torch.cdist(q[s:s + 1024], b)
+        out.append(-d.topk(k, dim=1, largest=False).values.mean(1) / np.sqrt(q.shape[1]))
     return torch.cat(out).numpy()
 
 
+def raw_knn_distance(query: torch.Tensor, bank: torch.Tensor, k: int) -> float:
+    """Mean distance of the query rows to their k nearest bank rows, in raw feature units."""
+    return float(torch.cat([torch.cdist(query[s:s + 1024], bank).topk(k, dim=1, largest=False)
+                            .values.mean(1) for s in range(0, len(query), 1024)]).mean())
+
+
+def silent_features(model, points: np.ndarray) -> int:
+    """Output features that are never positive on any point of these clouds."""
+    f = encode_clouds(model, points).reshape(-1, model.cfg.feat_dim)
+    return int(((f > 1e-6).sum(0) == 0).sum())
+
+
 def probe(model_path: str, train_dir: str, test_dir: str, bank_rows: int, k: int,
-          seed: int) -> dict:
+          seed: int, heldout_dir: str | None = None) -> dict:
     model, meta = load_model(model_path)
     prim = meta["primitive"]
     aff_cats, sim_cats = method_categories(str(meta.get("method", "w2e")),
@@ -77,9 +94,10 @@ def probe(model_path: str, train_dir: str, test_dir: str, bank_rows: int, k: int
     bank = contact_features(model, train.subset(np.isin(train.obs_index, obs)))
     test = InteractionData.load(test_dir).select(primitive=prim, valid_only=True)
     p, sim = predict_interactions(model, test)
+    test_feats = contact_features(model, test)
     y = test.success.astype(bool)
     right = (p > 0.5) == y
-    scores = {"similarity": sim, "knn": knn_closeness(contact_features(model, test), bank, k),
+    scores = {"similarity": sim, "knn": knn_closeness(test_feats, bank, k),
               "confidence": np.abs(p - 0.5)}
     cats = test.interaction_category
     per_cat = {}
@@ -89,6 +107,17 @@ def probe(model_path: str, train_dir: str, test_dir: str, bank_rows: int, k: int
                       "auroc": auroc(p[m], y[m]) if y[m].any() and (~y[m]).any() else float("nan"),
                       "accuracy": float(right[m].mean()),
                       **{s: float(v[m].mean()) for s, v in scores.items()}}
+    geometry = {"test_knn_distance": raw_knn_distance(test_feats, bank, k),
+                "feature_norm": float(bank.norm(dim=1).mean()),
+                "silent_features_train": silent_features(
+                    model, train.points[rng.choice(train.num_observations, 32, replace=False)]),
+                "silent_features_test": silent_features(
+                    model, test.points[rng.choice(test.num_observations, 32, replace=False)])}
+    if heldout_dir:  # unseen instances of the training categories: the distance of "familiar"
+        held = InteractionData.load(heldout_dir).select(primitive=prim, categories=sim_cats,
+                                                        valid_only=True)
+        geometry["heldout_knn_distance"] = raw_knn_distance(contact_features(model, held),
+                                                            bank, k)
     names = [c for c in per_cat if np.isfinite(per_cat[c]["auroc"])]
     corr = {s: {"auroc": float(spearmanr([per_cat[c][s] for c in names],
                                          [per_cat[c]["auroc"] for c in names])[0]),
@@ -97,7 +126,7 @@ def probe(model_path: str, train_dir: str, test_dir: str, bank_rows: int, k: int
                 "right_auroc": auroc(scores[s], right)} for s in SCORES}
     return {"model": model_path, "primitive": prim, "bank_categories": list(sim_cats),
             "bank_rows": len(bank), "k": k, "test": test_dir, "rows": len(y),
-            "per_category": per_cat, "scores": corr}
+            "per_category": per_cat, "scores": corr, "geometry": geometry}
 
 
 def markdown(r: dict) -> str:
@@ -109,6 +138,13 @@ def markdown(r: dict) -> str:
              "\"prediction right\" |", "|---|---|---|---|"]
     lines += [f"| {s} | {v['auroc']:+.2f} | {v['accuracy']:+.2f} | {100 * v['right_auroc']:.1f} |"
               for s, v in r["scores"].items()]
+    g = r["geometry"]
+    lines += ["", f"Encoder features (norm {g['feature_norm']:.2f}): mean {r['k']}-NN distance "
+              f"to the bank {g['test_knn_distance']:.4f} for these interactions"
+              + (f", {g['heldout_knn_distance']:.4f} for unseen instances of the training "
+                 "categories" if "heldout_knn_distance" in g else "")
+              + f"; {g['silent_features_train']} / {g['silent_features_test']} of the "
+              "output features never fire on 32 training / 32 of these clouds."]
     lines += ["", "| category | n | success % | AUROC | accuracy | " + " | ".join(SCORES) + " |",
               "|---" * (5 + len(SCORES)) + "|"]
     for c, v in sorted(r["per_category"].items(), key=lambda kv: kv[1]["auroc"]):
@@ -123,6 +159,9 @@ def main() -> None:
     ap.add_argument("--model", required=True)
     ap.add_argument("--train-data", required=True)
     ap.add_argument("--test-data", required=True)
+    ap.add_argument("--heldout-data", default=None,
+                    help="unseen instances of the training categories (w2e collect --split "
+                         "test): their distance to the bank is the reference for familiar")
     ap.add_argument("--bank-rows", type=int, default=20000)
     ap.add_argument("--k", type=int, default=16)
     ap.add_argument("--seed", type=int, default=0)
@@ -130,7 +169,7 @@ def main() -> None:
     ap.add_argument("--out", required=True, help="writes OUT.md and OUT.json")
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
-    r = probe(a.model, a.train_data, a.test_data, a.bank_rows, a.k, a.seed)
+    r = probe(a.model, a.train_data, a.test_data, a.bank_rows, a.k, a.seed, a.heldout_data)
     out = Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.with_suffix(".json").write_text(json.dumps(r, indent=1))
