@@ -73,10 +73,9 @@ def _tables(curves: dict[str, list[dict]], points: dict[str, dict],
 
 def _figure(curves: dict[str, list[dict]], points: dict[str, dict], path: Path) -> None:
     """One panel per metric: the runs' validation curves, the checkpoints as stars."""
-    import matplotlib
-
-    matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
+    from w2e_ros.core.viz import write_figure  # selects the Agg backend
 
     shown = tuple(m for m in ("caff_auroc", "csim_auroc", "novel_auroc", "novel_fscore")
                   if any(recs and f"val_{m}" in recs[0] for recs in curves.values())
@@ -99,7 +98,7 @@ def _figure(curves: dict[str, list[dict]], points: dict[str, dict], path: Path) 
     axes[0].set_ylabel("%")
     axes[-1].legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    write_figure(fig, path, dpi=110)
 
 
 def main() -> int:

@@ -117,9 +117,9 @@ def write_tables(res: dict, out: Path, title: str) -> None:
 
 
 def plot(res: dict, out: Path, title: str) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
+    from w2e_ros.core.viz import write_figure  # selects the Agg backend
 
     seeds = res["seeds"]
     sts = list(res["strategies"])
@@ -137,8 +137,7 @@ def plot(res: dict, out: Path, title: str) -> None:
     ax.set_title(title, fontsize=9)
     ax.legend(fontsize=7, ncol=2 * len(sts), loc="upper center")
     fig.tight_layout()
-    fig.savefig(out / "demo_seeds.png", dpi=110)
-    plt.close(fig)
+    write_figure(fig, out / "demo_seeds.png", dpi=110)
 
 
 def main(argv: list[str] | None = None) -> int:
