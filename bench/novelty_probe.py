@@ -10,7 +10,10 @@ novel category and per interaction:
   features: minus the mean distance to its k nearest bank features, each feature standardised
   by the bank's mean and spread (cosine closeness is ~1 for every pair: the features share a
   large common direction);
-* ``confidence``: |p - 0.5| of the affordance itself.
+* ``confidence``: |p - 0.5| of the affordance itself;
+* ``geometry``: the same k-NN closeness in a descriptor that owes nothing to the model: the
+  shape of the contact's neighbourhood at 3 / 6 / 12 cm (linearity, planarity, scattering of
+  the local covariance), its normal and the action's approach direction.
 
 For each it reports the rank correlation, across the novel categories, of the category's mean
 score with the model's AUROC on that category (high = the score calls familiar what the model
@@ -37,7 +40,8 @@ from w2e_ros.core.model import load_model
 from w2e_ros.core.predict import encode_clouds, predict_interactions
 from w2e_ros.core.training import method_categories
 
-SCORES = ("similarity", "knn", "confidence")
+SCORES = ("similarity", "knn", "confidence", "geometry")
+GEOMETRY_RADII = (0.03, 0.06, 0.12)  # m; the clouds' median point spacing is 23 mm
 
 
 def contact_features(model, data: InteractionData) -> torch.Tensor:
@@ -52,6 +56,31 @@ def contact_features(model, data: InteractionData) -> torch.Tensor:
     for rows, x in out:
         f[torch.from_numpy(rows)] = x.cpu()
     return f
+
+
+def geometry_descriptor(data: InteractionData) -> torch.Tensor:
+    """(K, 15) model-free description of each interaction: per radius the local covariance's
+    linearity, planarity and scattering around the contact, then its normal and the approach."""
+    from scipy.spatial import cKDTree
+
+    out = np.zeros((data.num_interactions, 3 * len(GEOMETRY_RADII) + 6), np.float32)
+    for o in range(data.num_observations):
+        rows = np.flatnonzero(data.obs_index == o)
+        if not len(rows):
+            continue
+        pts = data.points[o]
+        tree = cKDTree(pts)
+        for i, r in enumerate(GEOMETRY_RADII):
+            nbs = tree.query_ball_point(pts[data.point_index[rows]], r)
+            for row, nb in zip(rows, nbs, strict=True):
+                if len(nb) < 4:
+                    continue
+                ev = np.sort(np.linalg.eigvalsh(np.cov(pts[nb].T)))[::-1].clip(min=0) + 1e-12
+                out[row, 3 * i:3 * i + 3] = ((ev[0] - ev[1]) / ev[0], (ev[1] - ev[2]) / ev[0],
+                                             ev[2] / ev[0])
+        out[rows, -6:-3] = data.normals[o][data.point_index[rows]]
+        out[rows, -3:] = data.up[rows]
+    return torch.from_numpy(out)
 
 
 def knn_closeness(query: torch.Tensor, bank: torch.Tensor, k: int) -> np.ndarray:
@@ -91,14 +120,17 @@ def probe(model_path: str, train_dir: str, test_dir: str, bank_rows: int, k: int
     # the bank: contact features of a random subset of the training observations' trials
     obs = rng.choice(train.num_observations, min(train.num_observations, bank_rows // 24 + 1),
                      replace=False)
-    bank = contact_features(model, train.subset(np.isin(train.obs_index, obs)))
+    bank_data = train.subset(np.isin(train.obs_index, obs))
+    bank = contact_features(model, bank_data)
     test = InteractionData.load(test_dir).select(primitive=prim, valid_only=True)
     p, sim = predict_interactions(model, test)
     test_feats = contact_features(model, test)
     y = test.success.astype(bool)
     right = (p > 0.5) == y
     scores = {"similarity": sim, "knn": knn_closeness(test_feats, bank, k),
-              "confidence": np.abs(p - 0.5)}
+              "confidence": np.abs(p - 0.5),
+              "geometry": knn_closeness(geometry_descriptor(test),
+                                        geometry_descriptor(bank_data), k)}
     cats = test.interaction_category
     per_cat = {}
     for c in sorted(set(cats.tolist())):
