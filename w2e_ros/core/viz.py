@@ -40,8 +40,6 @@ def heatmap_figure(points: np.ndarray, maps: dict[str, np.ndarray], path: str | 
                    title: str = "", camera_pose: np.ndarray | None = None) -> Path:
     """One 3-D scatter per map, coloured 0 (blue) .. 1 (red), side by side; viewed from the
     camera when its pose is given (x forward), else from the front-left."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     n = len(maps)
     fig = plt.figure(figsize=(3.6 * n, 3.8))
     azim, elev = -60.0, 25.0
@@ -195,15 +193,19 @@ def _save(fig: plt.Figure, path: str | Path, dpi: int) -> Path:
 
 
 def write_figure(fig: plt.Figure, path: str | Path, dpi: int, **savefig) -> Path:
-    """Write a figure as a 256-colour PNG (creating the folder) and close it.
+    """Write a figure (creating the folder) and close it; a PNG in 256 colours.
 
     Plots and jet-coloured clouds lose nothing visible in 256 colours and take a third of the
     bytes: the committed results travel with the working tree to the GPU machine, 64 MiB in
-    all (``bench/device/pack.py``)."""
+    all (``bench/device/pack.py``). Other formats (``.pdf``, ``.svg``) are written as they are."""
     from PIL import Image
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    if path.suffix.lower() != ".png":
+        fig.savefig(path, dpi=dpi, **savefig)
+        plt.close(fig)
+        return path
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=dpi, **savefig)
     plt.close(fig)
