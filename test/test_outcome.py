@@ -200,10 +200,6 @@ class _Nodes:
         self.nodes = [self.bridge]
         if segmentation:
             self.nodes.append(SegmentationNode(context=self.ctx))
-        # the bridge serves from this process and cannot die; on a loaded CI machine the 2 s
-        # DDS liveliness of its announcement was seen to lapse in the full suite (the executor
-        # then said "the robot side died"), which is not what this test is about
-        executor_params.setdefault("server_timeout_s", 30.0)
         self.executor_node = GripperExecutorNode(context=self.ctx, parameter_overrides=[
             Parameter(k, value=v) for k, v in executor_params.items()])
         self.nodes.append(self.executor_node)
