@@ -272,3 +272,20 @@ def test_liveliness_back_before_the_new_announcement_is_not_the_dead_instance(pl
     watch._on_liveliness(SimpleNamespace(alive_count=1))
     assert watch.current() is None
     assert watch.wait_serving(LEASE_S + 1.0) and watch.current() == new
+
+
+def test_a_server_in_this_process_is_never_judged_dead(planner):
+    """Nodes composed in one process share a DDS participant, whose automatic liveliness was
+    seen to lapse for good while the process lived (test_outcome's in-process bridge, 2 in 8
+    runs: "the robot side died"). A server in this very process cannot have died."""
+    from w2e_ros.ros.peers import PeerWatch, in_this_process, instance_id
+
+    own, other = instance_id(), f"host-elsewhere:{os.getpid()}:{time.time_ns()}"
+    assert in_this_process(own) and not in_this_process(other)
+    watch = PeerWatch(planner[0], "w2e_test_own_process", "test server")
+    watch._on_instance(String(data=own))
+    watch._on_liveliness(SimpleNamespace(alive_count=0))  # the lapse
+    assert watch.current() == own and watch.wait_serving(0.0)
+    assert watch.check(own, 0) is None
+    watch._on_instance(String(data=other))  # a later process elsewhere: judged as before
+    assert watch.current() is None and not watch.wait_serving(0.3)
