@@ -169,12 +169,23 @@ def test_a_call_after_the_planner_died_waits_for_the_respawned_one(setup):
     client, env, planners = setup
     _dead_planner(client, env, planners)
     out: dict = {}
-    thread = threading.Thread(target=lambda: out.setdefault(
-        "result", client.manipulate("door", timeout=60)), daemon=True)
+
+    def call() -> None:
+        try:
+            out["result"] = client.manipulate("door", timeout=60)
+        except StackCallError as exc:
+            out["error"] = str(exc)
+
+    thread = threading.Thread(target=call, daemon=True)
     thread.start()
     time.sleep(1.5)  # the respawn takes a while
     planners.append(second := Planner(env))
     assert second.next(10) == "request manipulate", "the request never reached the new planner"
+    # the stand-in never answers: its death ends the call here, not 60 s later in another test
+    _announced(client, "manipulate")
+    second.kill()
+    thread.join(DETECT_S + 5)
+    assert out.get("error", "").startswith("manipulate: planner_node is gone"), out
 
 
 def test_a_call_after_the_planner_died_for_good_fails_clearly(setup):
