@@ -32,11 +32,10 @@ def main() -> None:
     p.add_argument("--height", type=int, default=576)
     a = p.parse_args()
 
-    for salt, (label, setup) in enumerate((("builtin transports", without_transport_profile),
-                                           (f"profile {profile_path().name}",
-                                            with_transport_profile))):
+    for label, setup in (("builtin transports", without_transport_profile),
+                         (f"profile {profile_path().name}", with_transport_profile)):
         before = shm_files()
-        env = setup(ros_env(domain_id=pick_domain_id(salt), localhost_only=False))
+        env = setup(ros_env(domain_id=pick_domain_id(), localhost_only=False))
         try:
             result = measure_delivery(env, width=a.width, height=a.height, rate=a.rate,
                                       duration=a.duration)

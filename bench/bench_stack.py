@@ -51,7 +51,7 @@ def main() -> None:
             path = save_model(tmp / f"{prim}.pt", W2EModel(), {"method": "w2e", "combo": "cfw"})
             print(f"(no {prim} checkpoint: random weights, default size)")
         ckpt[prim] = path
-    domain = pick_domain_id(31)
+    domain = pick_domain_id()
     extra = {"inference": ["-p", f"push_checkpoint:={ckpt['push']}",
                            "-p", f"pull_checkpoint:={ckpt['pull']}",
                            "-p", f"adapted_dir:={tmp / 'adapted'}"]}

@@ -35,13 +35,13 @@ import torch
 from scipy.stats import spearmanr
 
 from w2e_ros.core.data import InteractionData
+from w2e_ros.core.familiarity import describe_data, knn_closeness
 from w2e_ros.core.metrics import auroc
 from w2e_ros.core.model import load_model
 from w2e_ros.core.predict import encode_clouds, predict_interactions
 from w2e_ros.core.training import method_categories
 
 SCORES = ("similarity", "knn", "confidence", "geometry")
-GEOMETRY_RADII = (0.03, 0.06, 0.12)  # m; the clouds' median point spacing is 23 mm
 
 
 def contact_features(model, data: InteractionData) -> torch.Tensor:
@@ -56,43 +56,6 @@ def contact_features(model, data: InteractionData) -> torch.Tensor:
     for rows, x in out:
         f[torch.from_numpy(rows)] = x.cpu()
     return f
-
-
-def geometry_descriptor(data: InteractionData) -> torch.Tensor:
-    """(K, 15) model-free description of each interaction: per radius the local covariance's
-    linearity, planarity and scattering around the contact, then its normal and the approach."""
-    from scipy.spatial import cKDTree
-
-    out = np.zeros((data.num_interactions, 3 * len(GEOMETRY_RADII) + 6), np.float32)
-    for o in range(data.num_observations):
-        rows = np.flatnonzero(data.obs_index == o)
-        if not len(rows):
-            continue
-        pts = data.points[o]
-        tree = cKDTree(pts)
-        for i, r in enumerate(GEOMETRY_RADII):
-            nbs = tree.query_ball_point(pts[data.point_index[rows]], r)
-            for row, nb in zip(rows, nbs, strict=True):
-                if len(nb) < 4:
-                    continue
-                ev = np.sort(np.linalg.eigvalsh(np.cov(pts[nb].T)))[::-1].clip(min=0) + 1e-12
-                out[row, 3 * i:3 * i + 3] = ((ev[0] - ev[1]) / ev[0], (ev[1] - ev[2]) / ev[0],
-                                             ev[2] / ev[0])
-        out[rows, -6:-3] = data.normals[o][data.point_index[rows]]
-        out[rows, -3:] = data.up[rows]
-    return torch.from_numpy(out)
-
-
-def knn_closeness(query: torch.Tensor, bank: torch.Tensor, k: int) -> np.ndarray:
-    """Minus the mean distance to the k nearest bank rows, per feature dimension, in the
-    bank's standardised units (higher = more familiar)."""
-    mu, sd = bank.mean(0), bank.std(0) + 1e-6
-    q, b = (query - mu) / sd, (bank - mu) / sd
-    out = []
-    for s in range(0, len(q), 1024):
-        d = torch.cdist(q[s:s + 1024], b)
-        out.append(-d.topk(k, dim=1, largest=False).values.mean(1) / np.sqrt(q.shape[1]))
-    return torch.cat(out).numpy()
 
 
 def raw_knn_distance(query: torch.Tensor, bank: torch.Tensor, k: int) -> float:
@@ -129,8 +92,7 @@ def probe(model_path: str, train_dir: str, test_dir: str, bank_rows: int, k: int
     right = (p > 0.5) == y
     scores = {"similarity": sim, "knn": knn_closeness(test_feats, bank, k),
               "confidence": np.abs(p - 0.5),
-              "geometry": knn_closeness(geometry_descriptor(test),
-                                        geometry_descriptor(bank_data), k)}
+              "geometry": knn_closeness(describe_data(test), describe_data(bank_data), k)}
     cats = test.interaction_category
     per_cat = {}
     for c in sorted(set(cats.tolist())):

@@ -43,7 +43,7 @@ class _SlowSend:
 
 def _goal_answered(client_cls) -> bool:
     ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=pick_domain_id(41))
+    rclpy.init(context=ctx, domain_id=pick_domain_id())
     node = Node("race_test", context=ctx)
     ex = MultiThreadedExecutor(num_threads=2, context=ctx)
     ex.add_node(node)

@@ -72,7 +72,7 @@ class Robot:
         """``block_piece``: that trajectory (0: the first) takes the arm half way and stops
         there, as a part that does not give stops it; ``controller``: False, none listens;
         ``states``: False, no joint_states are published (no arm)."""
-        domain = pick_domain_id(salt=29)
+        domain = pick_domain_id()
         self.started = time.monotonic()
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "w2e_ros.nodes.arm_adapter_node", "--ros-args",
@@ -246,7 +246,7 @@ def test_executor_judging_by_joints_refuses_a_robot_side_without_object_joints()
     from w2e_ros.ros.conversions import action_to_interaction
 
     ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=pick_domain_id(43))
+    rclpy.init(context=ctx, domain_id=pick_domain_id())
     arm = Node("arm_like_robot_side", context=ctx)
     followed: list[int] = []
 

@@ -84,7 +84,7 @@ def test_a_command_line_override_still_beats_the_stack_file(tmp_path):
     proc = subprocess.run(  # the file says 0.3; 2.0 is out of range: the node stops
         [sys.executable, "-m", "w2e_ros.nodes.arm_adapter_node", *STACK_ARGS,
          "-p", "velocity_scale:=2.0"],
-        env=ros_env(domain_id=pick_domain_id(59), log_dir=tmp_path / "ros_log"),
+        env=ros_env(domain_id=pick_domain_id(), log_dir=tmp_path / "ros_log"),
         capture_output=True, text=True, timeout=60)
     out = proc.stdout + proc.stderr
     assert "velocity_scale" in out and proc.returncode == 2, out  # -p reached the node

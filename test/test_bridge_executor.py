@@ -75,7 +75,7 @@ class _Client:
 
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory):
-    domain = pick_domain_id(2)
+    domain = pick_domain_id()
     env = ros_env(domain_id=domain, log_dir=tmp_path_factory.mktemp("ros_log"))
     with Stack(nodes=["sim_bridge", "segmentation", "executor"], env=env,
                ready_timeout=90.0) as s:

@@ -26,7 +26,7 @@ def nodes():
     from w2e_ros.ros.processes import pick_domain_id
 
     ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=pick_domain_id(13))
+    rclpy.init(context=ctx, domain_id=pick_domain_id())
     bridge, seg = SimBridgeNode(context=ctx), SegmentationNode(context=ctx)
     try:
         yield bridge, seg

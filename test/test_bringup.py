@@ -46,7 +46,7 @@ def test_w2e_bringup_starts_the_chosen_nodes_in_a_namespace_on_a_domain(tmp_path
     import rclpy
     from rclpy.node import Node
 
-    domain = pick_domain_id(21)
+    domain = pick_domain_id()
     env = ros_env(domain_id=100 + (domain + 50) % 100)  # the flag, not this, must count
     proc = subprocess.Popen(
         [W2E, "bringup", "--nodes", "executor", "--namespace", "w2e", "--domain-id",
@@ -93,7 +93,7 @@ def test_w2e_bringup_respawn_restarts_a_dead_node_up_to_the_limit(tmp_path):
     """--respawn: a node killed is started again (logged, with its new pid); once it has been
     restarted --respawn-limit times it stays dead, bringup says so and exits."""
     proc = subprocess.Popen(
-        [W2E, "bringup", "--nodes", "executor", "--domain-id", str(pick_domain_id(23)),
+        [W2E, "bringup", "--nodes", "executor", "--domain-id", str(pick_domain_id()),
          "--log-dir", str(tmp_path / "log"), "--respawn", "--respawn-limit", "1",
          "--respawn-delay", "0.2"],
         env=ros_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
@@ -142,7 +142,7 @@ def test_nodes_of_a_stack_whose_owner_is_killed_do_not_outlive_it(tmp_path):
         "import sys, time\n"
         "from w2e_ros.bringup import Stack\n"
         "from w2e_ros.ros.processes import pick_domain_id, ros_env\n"
-        "s = Stack(nodes=['executor'], env=ros_env(domain_id=pick_domain_id(23)), output=None,\n"
+        "s = Stack(nodes=['executor'], env=ros_env(domain_id=pick_domain_id()), output=None,\n"
         "          ready_timeout=60.0).start()\n"
         "print(' '.join(str(p.popen.pid) for p in s.procs), flush=True)\n"
         "time.sleep(600)\n")
@@ -222,7 +222,7 @@ def test_robot_panda_without_what_it_needs_fails_at_once_naming_it(tmp_path):
     t0 = time.monotonic()
     params = _panda_params(tmp_path, None, "joints", bridge_base=PANDA_BASE)
     res = subprocess.run([W2E, "bringup", "--params", str(params),
-                          "--domain-id", str(pick_domain_id(71))], env=ros_env(),
+                          "--domain-id", str(pick_domain_id())], env=ros_env(),
                          capture_output=True, text=True, timeout=60)
     assert res.returncode == 1, res.stdout + res.stderr
     assert time.monotonic() - t0 < 30
@@ -236,7 +236,7 @@ def test_robot_panda_without_what_it_needs_fails_at_once_naming_it(tmp_path):
 def test_w2e_bringup_with_robot_panda_comes_up_without_a_separate_adapter(tmp_path):
     proc = subprocess.Popen(
         [W2E, "bringup", "--params", str(_panda_params(tmp_path, PANDA_BASE)), "--nodes",
-         "sim_bridge", "arm_adapter", "executor", "--domain-id", str(pick_domain_id(73)),
+         "sim_bridge", "arm_adapter", "executor", "--domain-id", str(pick_domain_id()),
          "--log-dir", str(tmp_path / "log"), "--timeout", "150"],
         env=ros_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
     lines: list[str] = []

@@ -290,7 +290,7 @@ def test_the_camera_pose_from_tf_published_by_another_process(scene, tmp_path):
             "dynamic": [["panda_link0", "panda_link1", int((t0 + t) * 1e9), *joint(t)]
                         for t in (-1.0, 0.0, 0.5, 1.0)],
             "rate_hz": 10.0}
-    domain = pick_domain_id(salt=59)
+    domain = pick_domain_id()
     proc = subprocess.Popen(
         [sys.executable, str(Path(__file__).with_name("tf_tree.py")), json.dumps(spec)],
         env=ros_env(domain_id=domain, log_dir=tmp_path / "ros_log"), start_new_session=True,
@@ -363,7 +363,7 @@ def test_segmentation_process_segments_a_published_optical_frame_cloud(tmp_path,
     params.update(camera_pose=small.camera_pose(), camera_frame=OPTICAL_FRAME)
     args = [a for k, v in params.items() for a in ("-p", f"{k}:={_ros_arg(v)}")]
 
-    domain = pick_domain_id(31)
+    domain = pick_domain_id()
     env = ros_env(domain_id=domain, log_dir=tmp_path / "ros_log")
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=domain)

@@ -88,7 +88,7 @@ class Planner:
 
 @pytest.fixture
 def setup(tmp_path):
-    domain = pick_domain_id(59)
+    domain = pick_domain_id()
     env = ros_env(domain_id=domain, log_dir=tmp_path / "ros_log")
     client = W2EClient(domain_id=domain)
     planners: list[Planner] = []

@@ -54,7 +54,7 @@ class Cell:
     """The bridge (robot panda) as a process; this process a plain rclpy client of it."""
 
     def __init__(self, tmp) -> None:
-        self.domain = pick_domain_id(salt=67)
+        self.domain = pick_domain_id()
         self.env = ros_env(domain_id=self.domain, log_dir=tmp / "ros_log")
         self.log = tmp / "sim_bridge.log"
         self.bridge = subprocess.Popen(

@@ -70,7 +70,7 @@ class _Graph:
 
     def __init__(self, overrides: list[Parameter]) -> None:
         self.ctx = rclpy.Context()
-        rclpy.init(context=self.ctx, domain_id=pick_domain_id(salt=7))
+        rclpy.init(context=self.ctx, domain_id=pick_domain_id())
         self.node = InferenceNode(context=self.ctx, parameter_overrides=overrides)
         self.client = Node("test_client", context=self.ctx)
         self.exe = MultiThreadedExecutor(num_threads=2, context=self.ctx)

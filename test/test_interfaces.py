@@ -142,7 +142,7 @@ def _serve() -> None:
 
 @pytest.fixture
 def server(tmp_path):
-    env = ros_env(domain_id=pick_domain_id(1), log_dir=tmp_path / "ros_log")
+    env = ros_env(domain_id=pick_domain_id(), log_dir=tmp_path / "ros_log")
     shm_before = shm_files()
     proc = subprocess.Popen([sys.executable, __file__], env=env, start_new_session=True,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)

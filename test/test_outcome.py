@@ -194,7 +194,7 @@ class _Nodes:
         from w2e_ros.ros.processes import pick_domain_id
 
         self.ctx = rclpy.Context()
-        rclpy.init(context=self.ctx, domain_id=pick_domain_id(5))
+        rclpy.init(context=self.ctx, domain_id=pick_domain_id())
         self.bridge = SimBridgeNode(context=self.ctx, parameter_overrides=[
             Parameter("publish_rate_hz", value=5.0), Parameter("table", value=False)])
         self.nodes = [self.bridge]

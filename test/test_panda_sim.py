@@ -179,7 +179,7 @@ def test_pull_through_the_stack_with_the_simulated_panda_opens_a_drawer(tmp_path
     world = ObjectWorld(model, [pose])
     base = sim_panda.base_in_front(world.center())
     base_arg = "[" + ", ".join(f"{v:.6f}" for v in base) + "]"
-    domain = pick_domain_id(salt=41)
+    domain = pick_domain_id()
     env = ros_env(domain_id=domain, log_dir=tmp_path / "ros_log")
     out = Tee()
     adapter_log = tmp_path / "arm_adapter.log"

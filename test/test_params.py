@@ -108,7 +108,7 @@ def test_a_wrong_override_is_one_line_naming_parameter_value_and_type(
 
 
 def _start(args: list[str], tmp_path: Path) -> subprocess.Popen:
-    env = ros_env(domain_id=pick_domain_id(61), log_dir=tmp_path / "ros_log")
+    env = ros_env(domain_id=pick_domain_id(), log_dir=tmp_path / "ros_log")
     return subprocess.Popen(
         [sys.executable, "-m", "w2e_ros.nodes.segmentation_node", "--ros-args", *args],
         env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,

@@ -86,7 +86,7 @@ class Server:
 @pytest.fixture
 def planner(tmp_path):
     """A planner node with the default timeouts, spun in this process; the env of its peers."""
-    domain = pick_domain_id(47)
+    domain = pick_domain_id()
     env = ros_env(domain_id=domain, log_dir=tmp_path / "ros_log")
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=domain)

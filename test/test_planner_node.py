@@ -101,7 +101,7 @@ def _answer(proc: subprocess.Popen, timeout: float) -> dict:
 
 
 def test_a_second_request_while_explore_runs_answers_busy_at_once(tmp_path):
-    env = ros_env(domain_id=pick_domain_id(31), log_dir=tmp_path / "ros_log")
+    env = ros_env(domain_id=pick_domain_id(), log_dir=tmp_path / "ros_log")
     extra = {"planner": ["-p", f"observe_timeout_s:={OBSERVE_TIMEOUT_S}",
                          "-p", f"exploration_log_dir:={tmp_path / 'exploration'}"]}
     with Stack(nodes=["planner"], env=env, output=io.StringIO(), extra_args=extra):

@@ -41,7 +41,7 @@ def stack(tmp_path_factory):
         torch.manual_seed(i)
         ckpt[prim] = save_model(tmp / f"{prim}.pt", W2EModel(), {"method": "w2e",
                                                                  "combo": "cfw"})
-    env = ros_env(domain_id=pick_domain_id(53), log_dir=tmp / "ros_log")
+    env = ros_env(domain_id=pick_domain_id(), log_dir=tmp / "ros_log")
     extra = {
         "inference": ["-p", f"push_checkpoint:={ckpt['push']}",
                       "-p", f"pull_checkpoint:={ckpt['pull']}",

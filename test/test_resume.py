@@ -193,7 +193,7 @@ def stack(tmp_path_factory):
         torch.manual_seed(i)
         ckpt[prim] = save_model(tmp / f"{prim}.pt", W2EModel(), {"method": "w2e",
                                                                  "combo": "cfw"})
-    domain = pick_domain_id(41)
+    domain = pick_domain_id()
     env = ros_env(domain_id=domain, log_dir=tmp / "ros_log")
     out = Tee()
     log_dir = tmp / "exploration"

@@ -45,7 +45,7 @@ def stack(tmp_path_factory):
         torch.manual_seed(i)
         ckpt[prim] = save_model(tmp / f"{prim}.pt", W2EModel(), {"method": "w2e",
                                                                  "combo": "cfw"})
-    domain = pick_domain_id(11)
+    domain = pick_domain_id()
     env = ros_env(domain_id=domain, log_dir=tmp / "ros_log")
     out = Tee()
     extra = {
@@ -116,7 +116,8 @@ def test_manipulate_executes_the_best_action_on_unseen_instances(stack):
     for inst in TEST_INSTANCES:
         joints.clear()
         t0 = time.perf_counter()
-        res = client.manipulate(CATEGORY, instances=[inst], primitive="push")
+        res = client.manipulate(CATEGORY, instances=[inst], primitive="push",
+                                 timeout=120.0)  # a trial takes seconds: not the 600 s default
         print(f"\n[stack] manipulate {CATEGORY}/{inst}: {time.perf_counter() - t0:.1f} s: "
               f"{res.message}; motion {[round(o.motion, 4) for o in res.outcomes]}")
         assert len(res.outcomes) == 1, res.message

@@ -129,7 +129,7 @@ def _planner(namespace: str, base: Path, env: dict[str, str]) -> tuple[subproces
 
 
 def test_two_stacks_keep_apart_and_a_refused_explore_leaves_nothing(tmp_path: Path):
-    domain = pick_domain_id(67)
+    domain = pick_domain_id()
     env = ros_env(domain_id=domain, log_dir=tmp_path / "ros_log")
     base = tmp_path / "exploration"  # the same directory given to both, as a shared YAML does
     procs = []

@@ -54,7 +54,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="model of the primitive (default: shipped checkpoints/w2e_cfw_*.pt)")
     p.add_argument("--out", default="results/demo", help="directory for the PNGs and summary")
     p.add_argument("--strategy", default="similarity", choices=[
-        n for n, st in STRATEGIES.items() if st.explores and not st.needs_labels],
+        n for n, st in STRATEGIES.items()
+        if st.explores and not st.needs_labels and not st.needs_familiarity],
                    help="the planner's exploration rule (random: the baseline to compare with)")
     p.add_argument("--seed", type=int, default=0,
                    help="the planner's seed (candidate sampling, start states)")
@@ -148,7 +149,7 @@ def run(a: argparse.Namespace) -> int:
         return 2
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    domain = a.domain_id if a.domain_id is not None else pick_domain_id(5)
+    domain = a.domain_id if a.domain_id is not None else pick_domain_id()
     env = ros_env(domain_id=domain, log_dir=out / "ros_log")
     extra = {"inference": ["-p", f"{a.primitive}_checkpoint:={ckpt.resolve()}",
                            "-p", f"adapted_dir:={(out / 'adapted').resolve()}"]

@@ -27,6 +27,7 @@ import torch
 from w2e_ros.core.actions import sample_forward, sample_up
 from w2e_ros.core.config import ExploreConfig
 from w2e_ros.core.data import InteractionData
+from w2e_ros.core.familiarity import GeometryFamiliarity
 from w2e_ros.core.feasibility import (
     DEFAULT_CHECK,
     FLYING,
@@ -192,7 +193,8 @@ def explore(model: ExplorationModel, world: ExplorationWorld, targets: Sequence[
             rng: np.random.Generator | None = None,
             on_step: Callable[[StepRecord], None] | None = None,
             should_stop: Callable[[], bool] | None = None,
-            spent: int = 0, arm: Arm = FLYING) -> ExplorationResult:
+            spent: int = 0, arm: Arm = FLYING,
+            familiarity: GeometryFamiliarity | None = None) -> ExplorationResult:
     """Explore ``targets`` with ``strategy``: ``cfg.budget`` x len(targets) interactions in
     rounds of ``cfg.round_size``, or until every object's mean similarity passes the bar.
     Snapshots of the model once b x len(targets) interactions are spent, for each b in
@@ -211,9 +213,14 @@ def explore(model: ExplorationModel, world: ExplorationWorld, targets: Sequence[
     counted in an object's mean similarity; an object left without any is not explored.
     ``arm``: with a Panda, candidates the arm cannot follow (IK, joint limits, workspace box:
     :func:`w2e_ros.core.feasibility.arm_reachable`) are dropped the same way.
+    ``familiarity``: the training contacts' bank that scores each candidate's geometric
+    familiarity (required by the strategies that rank by it).
 
     Each round: propose and score candidates, narrow the objects still explored, let the
     strategy pick, execute, learn, snapshot, re-observe what moved (:class:`_Run`)."""
+    if strategy.needs_familiarity and familiarity is None:
+        raise ValueError(f"strategy {strategy.name!r} ranks by geometric familiarity: give "
+                         "the training contacts' bank (GeometryFamiliarity)")
     run = _Run(model, world, list(targets), strategy, cfg, primitive,
                rng or np.random.default_rng(cfg.seed), arm, spent)
     stop = should_stop or (lambda: False)
@@ -222,6 +229,10 @@ def explore(model: ExplorationModel, world: ExplorationWorld, targets: Sequence[
         t0 = time.perf_counter()
         cands = run.candidates()
         scored = model.score(run.clouds, cands)
+        if familiarity is not None:
+            for sc, cloud, cand in zip(scored, run.clouds, cands, strict=True):
+                sc.familiarity = familiarity.closeness(cloud.points, cloud.normals,
+                                                       cand.point_index, cand.up)
         obj_mean = [float(np.mean(s.similarity)) if len(s.similarity) else 1.0
                     for s in scored]
         run.means.append(float(np.mean(obj_mean)))
@@ -450,6 +461,13 @@ def fewshot(model: W2EModel, meta: dict, world: ExplorationWorld, categories: Se
     groups = {"all": list(categories)} if mode == "all" else {c: [c] for c in categories}
     aff, sim = tuple(meta.get("aff_categories", ())), tuple(meta.get("sim_categories", ()))
     initial = {k: v.detach().clone() for k, v in model.state_dict().items()}
+    familiarity = None
+    if strategy.needs_familiarity:
+        if replay is None:
+            raise ValueError(f"strategy {strategy.name!r} needs the training collection "
+                             "(its contacts are the familiarity's bank): w2e benchmark "
+                             "--train-data, w2e fewshot --replay-data")
+        familiarity = GeometryFamiliarity.from_data(replay, seed=cfg.seed)
     out: dict[str, tuple[ExplorationResult, W2EExplorer]] = {}
     for name, cats in groups.items():
         m = copy.deepcopy(model)
@@ -463,6 +481,6 @@ def fewshot(model: W2EModel, meta: dict, world: ExplorationWorld, categories: Se
                  strategy.name, name, len(targets), primitive, cfg.budget,
                  cfg.budget * len(targets))
         res = explore(explorer, world, targets, strategy, cfg, primitive,
-                      rng=np.random.default_rng(cfg.seed))
+                      rng=np.random.default_rng(cfg.seed), familiarity=familiarity)
         out[name] = (res, explorer)
     return out

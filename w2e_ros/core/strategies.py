@@ -16,6 +16,10 @@ on cfw pull: all three tie random or lose to it);
 with the Where2Act baseline model or with ours; ``confident`` tries the actions the model
 rates most likely to succeed (a baseline: it finds successes, but the ones the model already
 expected, and measured below random on pull); ``random`` ranks at random;
+``geometry`` explores the actions whose contact neighbourhood looks least like the training
+contacts' (a model-free familiarity, :mod:`w2e_ros.core.familiarity`, that follows where the
+model is right across novel categories where the similarity head does not) and
+``geometry_sampled`` draws in proportion to that unfamiliarity;
 ``oracle`` uses hindsight labels from the simulator and picks the actions the current model
 gets most wrong (the most any selection rule can win); ``none`` does not explore.
 """
@@ -35,6 +39,7 @@ class Scored:
 
     affordance: np.ndarray  # (C,) probability that the action moves a part
     similarity: np.ndarray  # (C,) predicted similarity to the known geometry, in [0, 1]
+    familiarity: np.ndarray | None = None  # (C,) geometric closeness to the training contacts
 
 
 @dataclass(frozen=True)
@@ -43,13 +48,15 @@ class Strategy:
     ``stops_at_bar``: an object stops being explored when its mean similarity passes the
     bar (only meaningful for models whose similarity head was trained).
     ``needs_labels``: the loop must give hindsight outcomes of the candidates (oracle).
-    ``half_of``: half of each round by that rule, the rest at random."""
+    ``half_of``: half of each round by that rule, the rest at random.
+    ``needs_familiarity``: the loop must fill ``Scored.familiarity`` (a training bank)."""
 
     name: str
     explores: bool = True
     stops_at_bar: bool = False
     needs_labels: bool = False
     half_of: str | None = None
+    needs_familiarity: bool = False
 
     def keys(self, s: Scored, rng: np.random.Generator,
              labels: np.ndarray | None = None) -> np.ndarray:
@@ -79,6 +86,15 @@ class Strategy:
             return s.similarity + 2.0 * (s.affordance > 0.5)
         if self.name == "nosim_failure":  # its control: the predicted failures nearest 0.5
             return -s.affordance + 2.0 * (s.affordance > 0.5)
+        if self.needs_familiarity:
+            if s.familiarity is None:
+                raise ValueError(f"strategy {self.name!r} needs the geometric familiarity of "
+                                 "the candidates (a bank of training contacts)")
+            if self.name == "geometry":
+                return s.familiarity
+            # geometry_sampled: in proportion to the distance from the bank (Efraimidis-Spirakis)
+            w = np.clip(-s.familiarity, 1e-6, None)
+            return -np.log(rng.random(len(w)) + 1e-12) / w
         if self.name == "confident":
             return -s.affordance
         if self.name == "oracle":
@@ -149,6 +165,8 @@ STRATEGIES: dict[str, Strategy] = {
     "nosim": Strategy("nosim"),
     "confident": Strategy("confident"),
     "random": Strategy("random"),
+    "geometry": Strategy("geometry", needs_familiarity=True),
+    "geometry_sampled": Strategy("geometry_sampled", needs_familiarity=True),
     "oracle": Strategy("oracle", needs_labels=True),
     "none": Strategy("none", explores=False),
 }

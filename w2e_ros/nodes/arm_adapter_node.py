@@ -55,6 +55,7 @@ from w2e_ros.ros.waypoints import GRIPPER_CLOSE, GRIPPER_KEEP, GRIPPER_OPEN
 CONTROLLER_TOPIC = "panda_arm_controller/joint_trajectory"  # relative: remap for another
 FINGER_MOTION_S = 0.5  # s a gripper_topic command takes (the Panda hand: 4 cm at ~0.1 m/s)
 STALL_S = 0.5  # s without joint motion (behind the plan) that counts as stopped
+STATES_GRACE_S = 2.0  # s past the deadline a paused joint_states stream is waited for
 STALL_MOTION = 0.002  # rad: largest joint motion over STALL_S of an arm that stopped
 NOT_MOVED = 0.01  # rad: an arm that moved less did not run the trajectory at all
 HOLD_S = 0.1  # s: time_from_start of the hold command sent after a blocked piece
@@ -339,7 +340,11 @@ class ArmAdapterNode(Node):
                                    np.abs(q - target).max()) > s.goal_tolerance:
                     return self._diagnose(plan, first, last, q0, history, t, "stopped")
             if now > deadline:
-                if not history or t - history[-1][0] > STALL_S:
+                silent = not history or t - history[-1][0] > STALL_S
+                if silent and now < deadline + STATES_GRACE_S:
+                    time.sleep(0.02)  # a loaded machine pauses a stream: wait for one more
+                    continue
+                if silent:
                     last_seen = (f"the last {t - history[-1][0]:.1f} s" if history
                                  else f"{t:.1f} s")
                     return ("joint_states", f"no joint_states with {', '.join(self.joint_names)}"

@@ -164,7 +164,11 @@ class PlannerNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__("planner_node", **kwargs)
         self.settings = declare_typed_parameters(self, PlannerSettings)
-        get_strategy(self.settings.strategy)  # fail at start-up on a typo
+        strategy = get_strategy(self.settings.strategy)  # fail at start-up on a typo
+        if strategy.needs_labels or strategy.needs_familiarity:
+            raise ValueError(f"strategy {strategy.name!r} is offline only (w2e fewshot, w2e "
+                             "benchmark): it needs hindsight labels or the training "
+                             "collection, which the stack does not have")
         s = self.settings
         self.arm = Arm(s.arm, tuple(s.arm_base_pose), tuple(s.arm_workspace_min),
                        tuple(s.arm_workspace_max))  # ValueError names a wrong value

@@ -8,6 +8,7 @@ TERM again, then KILL; killed nodes leave Fast DDS shared-memory files in /dev/s
 
 from __future__ import annotations
 
+import itertools
 import os
 import signal
 import subprocess
@@ -55,9 +56,15 @@ def ros_env(
     return env
 
 
-def pick_domain_id(salt: int = 0) -> int:
-    """A ROS domain id in [100, 199] unlikely to collide with a concurrent run on this host."""
-    return 100 + (os.getpid() * 7 + salt * 13 + int(time.time() * 1000)) % 100
+_DOMAIN_BASE = (os.getpid() * 7 + int(time.time() * 1000)) % 100
+_DOMAIN_COUNT = itertools.count()
+
+
+def pick_domain_id() -> int:
+    """A ROS domain id in [100, 199] unlikely to collide with a concurrent run on this host,
+    and not given twice by one process until all 100 were: a domain used again in a process
+    meets the Fast DDS participant ids and shared-memory ports of its earlier use."""
+    return 100 + (_DOMAIN_BASE + 37 * next(_DOMAIN_COUNT)) % 100
 
 
 def stop_process(proc: subprocess.Popen, timeout: float = 5.0, group: bool = True) -> int | None:
