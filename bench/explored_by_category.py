@@ -40,12 +40,13 @@ def _category_auroc(z, key: str, cats: np.ndarray, y: np.ndarray, c: str) -> flo
     return auroc(z[key][sel], y[sel]) if y[sel].any() and (~y[sel]).any() else float("nan")
 
 
-def report(results: Path, combo: str, prim: str, budget: int = 5) -> str:
+def report(results: Path, combo: str, prim: str, budget: int = 5,
+           rules: tuple[str, ...] = RULES) -> str:
     z = np.load(results / f"{combo}_{prim}_none" / f"predictions_{combo}_{prim}.npz")
     y, cats = z["test:success"].astype(bool), z["test:category"]
     names = sorted(set(cats.tolist()))
     preds = {"none": z}
-    for rule in RULES:
+    for rule in rules:
         preds[rule] = np.load(results / f"{combo}_{prim}_{rule}"
                               / f"predictions_{combo}_{prim}.npz")
 
@@ -60,7 +61,7 @@ def report(results: Path, combo: str, prim: str, budget: int = 5) -> str:
              f"## Test AUROC per category (%), budget {budget}, mean over seeds", "",
              "| method | " + " | ".join(names) + " |", "|---" * (len(names) + 1) + "|"]
     base = {c: mean_auroc("none", c) for c in names}
-    for method in ("none", *RULES):
+    for method in ("none", *rules):
         vals = base if method == "none" else {c: mean_auroc(method, c) for c in names}
         lines.append(f"| {method} | " + " | ".join(f"{100 * vals[c]:.1f}" for c in names) + " |")
 
@@ -86,14 +87,14 @@ def report(results: Path, combo: str, prim: str, budget: int = 5) -> str:
               f"{spearmanr(r[:, 0], r[:, 1])[0]:+.2f}.", "",
               f"## Where each rule spent its budget (all seeds): interactions / success rate / "
               f"share rated below {LOW}", "",
-              "| category | " + " | ".join(RULES) + " |", "|---" * (len(RULES) + 1) + "|"]
-    spent = {rule: defaultdict(list) for rule in RULES}
-    for rule in RULES:
+              "| category | " + " | ".join(rules) + " |", "|---" * (len(rules) + 1) + "|"]
+    spent = {rule: defaultdict(list) for rule in rules}
+    for rule in rules:
         for s in _steps(results, combo, prim, rule):
             spent[rule][s["group"]].append(s)
     for c in names:
         cells = []
-        for rule in RULES:
+        for rule in rules:
             st = spent[rule].get(c, [])
             if not st:
                 cells.append("0")
@@ -112,9 +113,11 @@ def main() -> None:
     p.add_argument("--results", type=Path, default=Path("results/combos_today"),
                    help="directory of the per-method results (<combo>_<primitive>_<method>)")
     p.add_argument("--budget", type=int, default=5)
+    p.add_argument("--rules", nargs="+", default=list(RULES),
+                   help="the rules compared (random among them: its first rounds are read)")
     p.add_argument("--out", type=Path, help="also write the report here (markdown)")
     a = p.parse_args()
-    text = report(a.results, a.combo, a.primitive, a.budget)
+    text = report(a.results, a.combo, a.primitive, a.budget, tuple(a.rules))
     print(text)
     if a.out:
         a.out.parent.mkdir(parents=True, exist_ok=True)

@@ -134,3 +134,18 @@ def test_a_second_request_while_explore_runs_answers_busy_at_once(tmp_path):
                 if proc.poll() is None:
                     proc.kill()
                     proc.wait()
+
+
+@pytest.mark.parametrize("strategy, words", [("geometry", "offline only"),
+                                             ("oracle", "offline only"),
+                                             ("simlarity", "unknown strategy")])
+def test_a_strategy_the_stack_cannot_run_stops_the_planner_at_start_up(tmp_path, strategy, words):
+    """geometry needs the training collection and oracle hindsight labels: the planner says so
+    and exits, instead of failing at the first explore request."""
+    env = ros_env(domain_id=pick_domain_id(), log_dir=tmp_path / "ros_log")
+    proc = subprocess.run([sys.executable, "-m", "w2e_ros.nodes.planner_node", "--ros-args",
+                           "-p", f"strategy:={strategy}"], env=env, capture_output=True,
+                          text=True, timeout=60)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode != 0, out
+    assert words in out and strategy in out, out

@@ -19,7 +19,8 @@ expected, and measured below random on pull); ``random`` ranks at random;
 ``geometry`` explores the actions whose contact neighbourhood looks least like the training
 contacts' (a model-free familiarity, :mod:`w2e_ros.core.familiarity`, that follows where the
 model is right across novel categories where the similarity head does not) and
-``geometry_sampled`` draws in proportion to that unfamiliarity;
+``geometry_sampled`` draws in proportion to that unfamiliarity (offline only: they need the
+training contacts; measured on cfw pull: both tie random);
 ``oracle`` uses hindsight labels from the simulator and picks the actions the current model
 gets most wrong (the most any selection rule can win); ``none`` does not explore.
 """
