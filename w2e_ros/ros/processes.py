@@ -130,6 +130,25 @@ def _paths_in_use(ignore_pids: Iterable[int] = ()) -> set[str]:
     return used
 
 
+def deleted_shm_ports() -> dict[int, list[str]]:
+    """pid -> the Fast DDS shared-memory ports it maps whose files are gone.
+
+    A participant listening on, or sending to, a port whose file was removed and made again
+    exchanges nothing with the port's new owner: seen once on CI, a test's client on a deleted
+    port lost its requests. The test suite prints this beside every failure."""
+    out: dict[int, list[str]] = {}
+    for pid_dir in Path("/proc").glob("[0-9]*"):
+        try:
+            with open(pid_dir / "maps") as maps:
+                ports = sorted({line.split("/dev/shm/")[1].split()[0] for line in maps
+                                if "/dev/shm/fastrtps_port" in line and "(deleted)" in line})
+        except (OSError, IndexError):
+            continue
+        if ports:
+            out[int(pid_dir.name)] = ports
+    return out
+
+
 def clean_shm(before: set[Path] | None = None, ignore_pids: Iterable[int] = ()) -> list[Path]:
     """Remove Fast DDS shm files that appeared since ``before`` and no live process uses.
 
