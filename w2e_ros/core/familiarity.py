@@ -25,12 +25,11 @@ RADII = (0.03, 0.06, 0.12)  # m; the clouds' median point spacing is 23 mm
 DIM = 3 * len(RADII) + 6
 
 
-def local_shape(points: np.ndarray, index: np.ndarray,
-                tree: cKDTree | None = None) -> np.ndarray:
+def local_shape(points: np.ndarray, index: np.ndarray) -> np.ndarray:
     """(len(index), 3 x radii) linearity, planarity, scattering of the covariance of the
     cloud's points within each radius of ``points[index]`` (0 where fewer than 4 points)."""
     pts = np.asarray(points, np.float64)
-    tree = tree or cKDTree(pts)
+    tree = cKDTree(pts)
     out = np.zeros((len(index), 3 * len(RADII)), np.float32)
     centres = pts[np.asarray(index, np.int64)]
     for i, r in enumerate(RADII):

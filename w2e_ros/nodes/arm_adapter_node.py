@@ -340,17 +340,14 @@ class ArmAdapterNode(Node):
                                    np.abs(q - target).max()) > s.goal_tolerance:
                     return self._diagnose(plan, first, last, q0, history, t, "stopped")
             if now > deadline:
-                silent = not history or t - history[-1][0] > STALL_S
-                if silent and now < deadline + STATES_GRACE_S:
-                    time.sleep(0.02)  # a loaded machine pauses a stream: wait for one more
-                    continue
-                if silent:
+                if history and t - history[-1][0] <= STALL_S:
+                    return self._diagnose(plan, first, last, q0, history, t, "late")
+                if now > deadline + STATES_GRACE_S:  # a loaded machine pauses a stream
                     last_seen = (f"the last {t - history[-1][0]:.1f} s" if history
                                  else f"{t:.1f} s")
                     return ("joint_states", f"no joint_states with {', '.join(self.joint_names)}"
                             f" for {last_seen} while the arm ran points {first}..{last} of "
                             "the trajectory: is the joint_state_broadcaster running?")
-                return self._diagnose(plan, first, last, q0, history, t, "late")
             time.sleep(0.02)
 
     @staticmethod

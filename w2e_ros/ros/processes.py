@@ -120,14 +120,22 @@ def _paths_in_use(ignore_pids: Iterable[int] = ()) -> set[str]:
                     continue
                 if target.startswith("/dev/shm/"):
                     used.add(target)
-            with open(pid_dir / "maps") as maps:
-                for line in maps:
-                    i = line.find("/dev/shm/")
-                    if i >= 0:
-                        used.add(line[i:].strip().removesuffix(" (deleted)"))
+            used.update(path for path, _ in _shm_mapped(pid_dir))
         except (OSError, PermissionError):
             continue
     return used
+
+
+def _shm_mapped(pid_dir: Path) -> list[tuple[str, bool]]:
+    """(path, file removed since) of every /dev/shm mapping of one process (OSError: gone)."""
+    out = []
+    with open(pid_dir / "maps") as maps:
+        for line in maps:
+            i = line.find("/dev/shm/")
+            if i >= 0:
+                path = line[i:].strip()
+                out.append((path.removesuffix(" (deleted)"), path.endswith(" (deleted)")))
+    return out
 
 
 def deleted_shm_ports() -> dict[int, list[str]]:
@@ -139,10 +147,9 @@ def deleted_shm_ports() -> dict[int, list[str]]:
     out: dict[int, list[str]] = {}
     for pid_dir in Path("/proc").glob("[0-9]*"):
         try:
-            with open(pid_dir / "maps") as maps:
-                ports = sorted({line.split("/dev/shm/")[1].split()[0] for line in maps
-                                if "/dev/shm/fastrtps_port" in line and "(deleted)" in line})
-        except (OSError, IndexError):
+            ports = sorted({Path(path).name for path, removed in _shm_mapped(pid_dir)
+                            if removed and Path(path).name.startswith("fastrtps_port")})
+        except OSError:
             continue
         if ports:
             out[int(pid_dir.name)] = ports
