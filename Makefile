@@ -79,4 +79,5 @@ bench: install
 	$(PY) bench/bench_model.py
 
 clean-ros:
-	rm -rf /dev/shm/fastrtps_* 2>/dev/null || true
+	@# only the files no live process maps or holds open (other users' ROS processes keep theirs)
+	$(PY) -m w2e_ros.ros.processes clean

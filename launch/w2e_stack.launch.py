@@ -15,17 +15,19 @@ The same nodes, names and parameter file as ``w2e bringup`` (which is what runs 
                              are the un-namespaced ones; default false)
 
 Each node gets its own section of the YAML as a parameter dictionary, so the plain
-``node_name:`` keys work under any namespace (what nav2 does with RewrittenYaml). The nodes
-load the Fast DDS profile for large messages (share/w2e_ros/config/fastdds_large_messages.xml)
-unless the shell names a profile already (FASTRTPS_/FASTDDS_DEFAULT_PROFILES_FILE), as
-``w2e bringup`` does.
+``node_name:`` keys work under any namespace (what nav2 does with RewrittenYaml). As with
+``w2e bringup``, the nodes that carry camera clouds (LARGE_MESSAGE_NODES) load the Fast DDS
+profile for large messages (share/w2e_ros/config/fastdds_large_messages.xml, shared memory)
+and the control nodes fastdds_control.xml (UDP only: a respawned node is heard again), unless
+the shell names a profile of its own (FASTRTPS_/FASTDDS_DEFAULT_PROFILES_FILE). Unlike
+``w2e bringup``, launch_ros gives a respawned shared-memory node no fresh participant id.
 """
 
 import os
 
 import yaml
 from ament_index_python.packages import get_package_share_directory
-from launch.actions import DeclareLaunchArgument, OpaqueFunction, SetEnvironmentVariable
+from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
@@ -40,8 +42,10 @@ NODES = {
     "executor": ("executor_node", "executor"),
     "planner": ("planner_node", "planner_node"),
 }
-# the Fast DDS profile for large messages (as w2e_ros.ros.transport), read by Fast DDS 2.x / 3.x
+# the Fast DDS profiles (as w2e_ros.ros.transport), read by Fast DDS 2.x / 3.x
 PROFILE_FILE = "fastdds_large_messages.xml"
+CONTROL_PROFILE_FILE = "fastdds_control.xml"
+LARGE_MESSAGE_NODES = ("sim_bridge", "segmentation")
 PROFILE_VARS = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE")
 
 
@@ -86,6 +90,7 @@ def _nodes(context, *args, **kwargs):
             emulate_tty=True,
             respawn=respawn,
             respawn_delay=respawn_delay,
+            additional_env=_transport_env(name),
         ))
     if LaunchConfiguration("rviz").perform(context).lower() in ("true", "1", "yes"):
         layout = os.path.join(get_package_share_directory("w2e_ros"), "config", "w2e.rviz")
@@ -94,18 +99,25 @@ def _nodes(context, *args, **kwargs):
     return actions
 
 
-def _transport_profile() -> list[SetEnvironmentVariable]:
-    """Both profile variables: the shell's profile where either is set, else the shipped one."""
-    shipped = os.path.join(get_package_share_directory("w2e_ros"), "config", PROFILE_FILE)
-    chosen = next((os.environ[v] for v in PROFILE_VARS if os.environ.get(v)), shipped)
-    return [SetEnvironmentVariable(v, os.environ.get(v) or chosen) for v in PROFILE_VARS]
+def _transport_env(name: str) -> dict[str, str]:
+    """Both profile variables of one node: the shell's own profile where it names one (the
+    shipped large-message profile, which the venv's activate script sets, is none), else
+    shared memory for the cloud nodes and UDP only for the others."""
+    config = os.path.join(get_package_share_directory("w2e_ros"), "config")
+    shipped = os.path.join(config, PROFILE_FILE)
+    named = next((os.environ[v] for v in PROFILE_VARS if os.environ.get(v)), None)
+    if named and os.path.realpath(named) != os.path.realpath(shipped):
+        chosen = named
+    else:
+        chosen = shipped if name in LARGE_MESSAGE_NODES else os.path.join(
+            config, CONTROL_PROFILE_FILE)
+    return {v: chosen for v in PROFILE_VARS}
 
 
 def generate_launch_description() -> LaunchDescription:
     default_params = os.path.join(
         get_package_share_directory("w2e_ros"), "config", "w2e_stack.yaml")
     return LaunchDescription([
-        *_transport_profile(),
         DeclareLaunchArgument("namespace", default_value="",
                               description="namespace of every node"),
         DeclareLaunchArgument("params_file", default_value=default_params,

@@ -5,16 +5,18 @@ size cloud (11.8 MB), best effort at 2 Hz, reaches a sensor-QoS subscriber in an
 from __future__ import annotations
 
 import sys
+import tempfile
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import pytest
 
-from w2e_ros.bringup import Stack
+from w2e_ros.bringup import NODES, Stack
 from w2e_ros.paths import config_dir
 from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, ros_env
 from w2e_ros.ros.transport import (
     PROFILE_VARS,
+    control_profile_path,
     measure_delivery,
     profile_path,
     with_transport_profile,
@@ -53,12 +55,24 @@ def test_the_profile_is_valid_against_the_shipped_fast_dds_schema():
     assert schema.validate(etree.parse(str(profile_path()))), schema.error_log
 
 
-def test_bringup_gives_node_processes_the_profile_unless_one_is_set():
+def test_bringup_gives_cloud_nodes_the_profile_control_nodes_udp_unless_one_is_set(tmp_path):
     base = {k: v for k, v in ros_env().items() if k not in PROFILE_VARS}
-    env = Stack(nodes=["executor"], env=base).env
-    assert all(env[v] == str(profile_path()) for v in PROFILE_VARS)
-    mine = Stack(nodes=["executor"], env=dict(base, FASTRTPS_DEFAULT_PROFILES_FILE="/my.xml")).env
-    assert all(mine[v] == "/my.xml" for v in PROFILE_VARS)
+    stack = Stack(nodes=["sim_bridge", "executor"], env=base)
+    stack._tmp = tempfile.TemporaryDirectory(dir=tmp_path)
+    bridge = stack._node_env(NODES["sim_bridge"])
+    executor = stack._node_env(NODES["executor"])
+    assert all(executor[v] == str(control_profile_path()) for v in PROFILE_VARS)
+    shm = Path(bridge[PROFILE_VARS[0]])
+    assert shm.read_text().count("<participantID>") == 1
+    assert shm.read_text().replace(
+        f"\n        <participantID>{stack.participant_ids['sim_bridge']}</participantID>",
+        "") == profile_path().read_text()
+    # the venv's activate script names the shipped profile: still chosen per node
+    activated = Stack(nodes=["executor"], env=dict(base, **{v: str(profile_path())
+                                                          for v in PROFILE_VARS}))
+    assert activated._node_env(NODES["executor"])[PROFILE_VARS[0]] == str(control_profile_path())
+    mine = Stack(nodes=["executor"], env=dict(base, FASTRTPS_DEFAULT_PROFILES_FILE="/my.xml"))
+    assert all(mine._node_env(NODES["executor"])[v] == "/my.xml" for v in PROFILE_VARS)
 
 
 def test_a_kinect_size_best_effort_cloud_reaches_another_process_with_the_profile():

@@ -5,11 +5,16 @@ Every node runs as its own process under this Python (the venv's), as
 with ``[name]``; its parameters are the YAML section named as the node names itself. The
 stack is up when every node's services, actions and topics are visible on the ROS graph; it
 is stopped with TERM, a wait, TERM again, then KILL, and the Fast DDS shared-memory files its
-processes leave are removed. Node processes get the Fast DDS transport profile for large
-messages (``config/fastdds_large_messages.xml``, see ``w2e_ros.ros.transport``) unless the
-environment names a profile already. With ``respawn`` a node process that exits on its own is
+processes leave are removed. The nodes that carry camera clouds get the Fast DDS transport
+profile for large messages (``config/fastdds_large_messages.xml``, shared memory) with a
+participant id no living process still writes to; the control nodes get
+``config/fastdds_control.xml`` (UDP only), so a respawned node is always heard again (see
+``w2e_ros.ros.transport``). A profile the environment names already is used for every node.
+With ``respawn`` a node process that exits on its own is
 started again (the same command), after a delay that doubles from ``respawn_delay`` up to
-``RESPAWN_MAX_DELAY`` s, at most ``respawn_limit`` times per node; each exit and restart is
+``RESPAWN_MAX_DELAY`` s with each quick death in a row (a node that ran ``RESPAWN_STABLE_S``
+s starts again from ``respawn_delay``), at most ``respawn_limit`` times per node; each exit
+and restart is
 logged (``[bringup] node executor died (SIGKILL); restart 1 of 5 in 1.0 s``).
 
 Command line (also ``w2e bringup``)::
@@ -41,8 +46,23 @@ from typing import TextIO
 import yaml
 
 from w2e_ros.paths import config_dir
-from w2e_ros.ros.processes import clean_shm, ros_env, shm_files, stop_process, venv_python
-from w2e_ros.ros.transport import with_transport_profile
+from w2e_ros.ros.processes import (
+    clean_shm,
+    ros_env,
+    shm_files,
+    shm_ports_in_use,
+    stop_process,
+    venv_python,
+)
+from w2e_ros.ros.transport import (
+    control_profile_path,
+    free_participant_id,
+    profile_path,
+    profile_with_participant_id,
+    unicast_ports,
+    user_profile,
+    with_profile,
+)
 
 
 @dataclass(frozen=True)
@@ -55,6 +75,7 @@ class NodeSpec:
     services: tuple[str, ...] = ()  # relative service names
     actions: tuple[str, ...] = ()  # relative action names
     publishers: tuple[str, ...] = ()  # relative topics it publishes
+    large_messages: bool = False  # carries camera clouds: shared memory (else UDP only)
 
 
 NODES: dict[str, NodeSpec] = {
@@ -62,13 +83,13 @@ NODES: dict[str, NodeSpec] = {
     for spec in (
         NodeSpec("sim_bridge", "sim_bridge", "sim_bridge.bridge_node",
                  services=("load_scene",), actions=("follow_waypoints",),
-                 publishers=("camera/points",)),
+                 publishers=("camera/points",), large_messages=True),
         # the robot side in place of the bridge's follow_waypoints: a real arm, or the bridge's
         # simulated Panda (started by default only then, see Stack)
         NodeSpec("arm_adapter", "arm_adapter", "w2e_ros.nodes.arm_adapter_node",
                  actions=("follow_waypoints",)),
         NodeSpec("segmentation", "segmentation", "w2e_ros.nodes.segmentation_node",
-                 publishers=("objects",)),
+                 publishers=("objects",), large_messages=True),
         NodeSpec("inference", "inference_node", "w2e_ros.nodes.inference_node",
                  services=("predict_maps", "update_model")),
         NodeSpec("executor", "executor", "w2e_ros.nodes.executor_node",
@@ -111,6 +132,7 @@ def node_parameters(params: Path, node: str, namespace: str = "",
 
 
 RESPAWN_MAX_DELAY = 10.0  # s: the longest wait before a respawn
+RESPAWN_STABLE_S = 30.0  # s: a node up this long died of something new: no backoff
 
 
 class StackError(RuntimeError):
@@ -169,6 +191,7 @@ class _Proc:
         self.popen = popen
         self.tail: collections.deque[str] = collections.deque(maxlen=40)
         self.given_up = False  # respawn: died once too often, left dead (and said so once)
+        self.started = time.monotonic()
         self._thread = threading.Thread(target=self._pump, args=(output, lock), daemon=True)
         self._thread.start()
 
@@ -207,9 +230,12 @@ class Stack:
         if not self.params.exists():
             raise FileNotFoundError(f"parameter file {self.params} does not exist")
         self.namespace = "/" + namespace.strip("/") if namespace.strip("/") else ""
-        # node processes load config/fastdds_large_messages.xml (large clouds between
-        # processes) unless the environment names a Fast DDS profile already
-        self.env = with_transport_profile(ros_env(base=env, localhost_only=False))
+        # each node process gets its transport profile in _node_env unless the environment
+        # names a Fast DDS profile already
+        self.env = ros_env(base=env, localhost_only=False)
+        self._user_profile = user_profile(self.env)
+        self.participant_ids: dict[str, int] = {}  # shared-memory node -> its id now
+        self._ids_given: set[int] = set()
         self.output = output
         self.ready_timeout = ready_timeout
         self.extra_args = {k: list(v) for k, v in (extra_args or {}).items()}
@@ -310,10 +336,29 @@ class Stack:
             raise
         return self
 
+    def _node_env(self, spec: NodeSpec) -> dict[str, str]:
+        """The environment of one node process: its Fast DDS profile. Control nodes talk UDP
+        only; a shared-memory node gets a participant id whose ports no living process still
+        maps, so no survivor of a node it replaces writes into a removed port."""
+        if self._user_profile is not None:
+            return with_profile(self.env, self._user_profile)
+        if not spec.large_messages:
+            return with_profile(self.env, control_profile_path())
+        assert self._tmp is not None
+        domain = int(self.env.get("ROS_DOMAIN_ID") or 0)
+        held = {i for name, i in self.participant_ids.items() if name != spec.name}
+        busy = shm_ports_in_use() | {p for i in held for p in unicast_ports(domain, i)}
+        pid = free_participant_id(domain, self._ids_given, busy)
+        self._ids_given.add(pid)
+        self.participant_ids[spec.name] = pid
+        return with_profile(self.env, profile_with_participant_id(profile_path(), pid,
+                                                                  Path(self._tmp.name)))
+
     def _spawn(self, spec: NodeSpec) -> _Proc:
         assert self._params_file is not None
         popen = subprocess.Popen(
-            self.command(spec, self._params_file), env=self.env, stdin=subprocess.DEVNULL,
+            self.command(spec, self._params_file), env=self._node_env(spec),
+            stdin=subprocess.DEVNULL,
             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1,
             start_new_session=True, preexec_fn=_die_with_parent)
         return _Proc(spec, popen, self.output, self._lock)
@@ -321,6 +366,7 @@ class Stack:
     def _watch(self) -> None:
         """Respawn: start a node again when its process exits on its own (backoff, limit)."""
         due: dict[str, float] = {}  # node -> when to restart it
+        quick: dict[str, int] = {}  # node -> deaths in a row, each soon after its start
         while not self._stopping.wait(0.2):
             with self._procs_lock:
                 procs = list(enumerate(self.procs))
@@ -338,7 +384,10 @@ class Stack:
                             self._say(f"node {name} died ({describe_exit(code)}); not restarted: "
                                       f"it was restarted {n} times (limit {self.respawn_limit})")
                         continue
-                    delay = min(self.respawn_delay * 2 ** n, RESPAWN_MAX_DELAY)
+                    ran = time.monotonic() - proc.started
+                    quick[name] = 0 if ran >= RESPAWN_STABLE_S else quick.get(name, 0) + 1
+                    delay = min(self.respawn_delay * 2 ** max(quick[name] - 1, 0),
+                                RESPAWN_MAX_DELAY)
                     due[name] = time.monotonic() + delay
                     self._say(f"node {name} died ({describe_exit(code)}); restart {n + 1} of "
                               f"{self.respawn_limit} in {delay:.1f} s")
@@ -466,8 +515,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--respawn-limit", type=int, default=5,
                    help="most restarts per node with --respawn (default 5)")
     p.add_argument("--respawn-delay", type=float, default=1.0,
-                   help="seconds before the first restart of a node; doubles with each one, "
-                        f"up to {RESPAWN_MAX_DELAY:.0f} s (default 1)")
+                   help="seconds before the first restart of a node; doubles with each quick "
+                        f"death in a row, up to {RESPAWN_MAX_DELAY:.0f} s; a node that ran "
+                        f"{RESPAWN_STABLE_S:.0f} s starts from it again (default 1)")
 
 
 def main(argv: list[str] | None = None) -> int:

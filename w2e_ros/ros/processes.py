@@ -8,8 +8,10 @@ TERM again, then KILL; killed nodes leave Fast DDS shared-memory files in /dev/s
 
 from __future__ import annotations
 
+import argparse
 import itertools
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -156,21 +158,47 @@ def deleted_shm_ports() -> dict[int, list[str]]:
     return out
 
 
-def clean_shm(before: set[Path] | None = None, ignore_pids: Iterable[int] = ()) -> list[Path]:
-    """Remove Fast DDS shm files that appeared since ``before`` and no live process uses.
+_PORT_NAME = re.compile(r"fastrtps_port(\d+)")
 
-    Files of other runs on this host (present in ``before``, or still open) are left alone.
-    ``ignore_pids``: processes whose use does not count (this one, at exit, after its ROS
-    contexts are shut down).
+
+def shm_ports_in_use() -> set[int]:
+    """Fast DDS shared-memory port numbers some live process maps or holds open (its own port,
+    or a peer's it writes to, the file removed or not): a new participant must not take them."""
+    return {int(m.group(1)) for path in _paths_in_use()
+            if (m := _PORT_NAME.fullmatch(Path(path).name))}
+
+
+def _stem(path: Path) -> str:
+    """The Fast DDS object a shm file belongs to: ``fastrtps_port7411`` for the port segment,
+    its ``_el`` listener lock and its ``sem.…_mutex`` semaphore alike."""
+    name = path.name.removeprefix("sem.")
+    for suffix in ("_mutex", "_el", "_sl"):
+        name = name.removesuffix(suffix)
+    return name
+
+
+def dead_shm_files(before: set[Path] | None = None, ignore_pids: Iterable[int] = ()) -> list[Path]:
+    """Fast DDS shm files that appeared since ``before`` and no live process uses.
+
+    A segment, its lock file and its semaphore count together: a port whose segment a survivor
+    still maps but whose lock file was removed is made again by the next participant that
+    takes it, and the survivor then writes into the removed copy.
+    ``ignore_pids``: processes whose use does not count.
     """
     candidates = shm_files() - (before or set())
     if not candidates:
         return []
     used = _paths_in_use(ignore_pids)
+    kept = {_stem(Path(path)) for path in used}
+    return sorted(p for p in candidates if str(p) not in used and _stem(p) not in kept)
+
+
+def clean_shm(before: set[Path] | None = None, ignore_pids: Iterable[int] = ()) -> list[Path]:
+    """Remove the ``dead_shm_files``; files of other runs on this host (present in ``before``,
+    or still in use) are left alone. ``ignore_pids``: processes whose use does not count (this
+    one, at exit, after its ROS contexts are shut down). Returns what was removed."""
     removed = []
-    for path in sorted(candidates):
-        if str(path) in used:
-            continue
+    for path in dead_shm_files(before, ignore_pids):
         try:
             path.unlink()
             removed.append(path)
@@ -185,3 +213,22 @@ def clean_shm_at_exit(before: set[Path] | None = None) -> None:
     import atexit
 
     atexit.register(lambda: clean_shm(before, ignore_pids=(os.getpid(),)))
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m w2e_ros.ros.processes clean``: remove the Fast DDS shm files of dead
+    processes (what ``make clean-ros`` runs); a file some live process uses stays."""
+    p = argparse.ArgumentParser(description=main.__doc__.split(":")[0].strip("`"))
+    p.add_argument("action", choices=["clean"])
+    p.add_argument("-n", "--dry-run", action="store_true", help="list, remove nothing")
+    a = p.parse_args(argv)
+    dead = dead_shm_files() if a.dry_run else clean_shm()
+    for path in dead:
+        print(path)
+    print(f"{'would remove' if a.dry_run else 'removed'} {len(dead)} Fast DDS shm file(s) "
+          "no live process uses", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -7,6 +7,14 @@ participant profile and gives it to every node process through the two variables
 reads (``FASTRTPS_DEFAULT_PROFILES_FILE`` for Fast DDS 2.x, ``FASTDDS_DEFAULT_PROFILES_FILE``
 for 3.x); a profile the user set already wins.
 
+Only the nodes that carry camera clouds (``sim_bridge``, ``segmentation``) use that profile;
+the control nodes get ``config/fastdds_control.xml`` (UDPv4 only): Fast DDS 2.14's
+shared-memory transport loses a participant that replaces a dead one on its participant id
+(the survivors keep writing to the dead one's removed port; eProsima/Fast-DDS#4728), which
+over UDP cannot happen. A shared-memory node of a stack gets a participant id of its own that
+no living process still writes to (``free_participant_id``), written into a per-process copy
+of the profile (``profile_with_participant_id``).
+
 The check: ``measure_delivery`` starts a subscriber process (sensor-data QoS) and a publisher
 process (best effort, a cloud of ``width x height`` points of 32 bytes at ``rate`` Hz for
 ``duration`` s) and returns what arrived::
@@ -29,6 +37,7 @@ from pathlib import Path
 from w2e_ros.paths import config_dir
 
 PROFILE_FILE = "fastdds_large_messages.xml"
+CONTROL_PROFILE_FILE = "fastdds_control.xml"
 PROFILE_VARS = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE")
 POINT_STEP = 32  # bytes per point: x y z (+pad) rgb (+pad) normal... as an Azure Kinect cloud
 TOPIC = "w2e_transport_check/points"
@@ -37,6 +46,70 @@ TOPIC = "w2e_transport_check/points"
 def profile_path() -> Path:
     """The shipped profile (source tree or installed share directory)."""
     return config_dir() / PROFILE_FILE
+
+
+def control_profile_path() -> Path:
+    """The control nodes' profile: UDPv4 only (source tree or installed share directory)."""
+    return config_dir() / CONTROL_PROFILE_FILE
+
+
+def user_profile(env: dict[str, str]) -> str | None:
+    """The Fast DDS profile ``env`` names already (the user's choice wins), or None. The
+    shipped large-message profile, which the venv's activate script sets, is no choice."""
+    named = next((env[v] for v in PROFILE_VARS if env.get(v)), None)
+    if named is None or Path(named).resolve() == profile_path().resolve():
+        return None
+    return named
+
+
+def with_profile(env: dict[str, str], path: str | Path) -> dict[str, str]:
+    """``env`` with both profile variables set to ``path``. Returns a new dict."""
+    return {**env, **{var: str(path) for var in PROFILE_VARS}}
+
+
+# Fast DDS's default port mapping (RTPS spec 9.6.1.1): PB + DG * domain + offset + PG * id
+PORT_BASE, DOMAIN_GAIN, PARTICIPANT_GAIN = 7400, 250, 2
+META_UNICAST_OFFSET, USER_UNICAST_OFFSET = 10, 11
+STACK_PARTICIPANT_IDS = range(64, 120)
+"""Participant ids for a stack's shared-memory nodes: above those Fast DDS assigns itself
+(the lowest free from 0, so a host's clients and other nodes), below 120, where the unicast
+ports of the next domain begin."""
+
+
+def unicast_ports(domain_id: int, participant_id: int) -> tuple[int, int]:
+    """The metatraffic and user unicast ports (and shared-memory port numbers) of a participant."""
+    base = PORT_BASE + DOMAIN_GAIN * domain_id + PARTICIPANT_GAIN * participant_id
+    return base + META_UNICAST_OFFSET, base + USER_UNICAST_OFFSET
+
+
+def free_participant_id(domain_id: int, used_before: set[int], busy_ports: set[int],
+                        ids: range = STACK_PARTICIPANT_IDS) -> int:
+    """A participant id whose shared-memory ports no living process maps (``busy_ports``):
+    one never given before in this stack's life (``used_before``) where there is one, else the
+    lowest whose old users are all gone. Reusing a port that a survivor still writes to is
+    the failure this avoids; the survivor's copy of a port dies with it.
+    Raises RuntimeError when every id of the band is held."""
+    free = [i for i in ids if not busy_ports & set(unicast_ports(domain_id, i))]
+    if not free:
+        raise RuntimeError(f"every Fast DDS participant id in {ids.start}..{ids.stop - 1} of "
+                           f"domain {domain_id} has its shared-memory ports mapped by a living "
+                           "process; stop the processes that still hold them")
+    fresh = [i for i in free if i not in used_before]
+    return (fresh or free)[0]
+
+
+def profile_with_participant_id(profile: Path, participant_id: int, out_dir: Path) -> Path:
+    """A copy of ``profile`` whose default participant takes ``participant_id`` (Fast DDS then
+    never picks the id itself)."""
+    text = Path(profile).read_text()
+    marker = "<rtps>"
+    if text.count(marker) != 1:
+        raise ValueError(f"{profile}: expected one participant <rtps> element")
+    text = text.replace(marker, f"{marker}\n        <participantID>{participant_id}"
+                                "</participantID>")
+    out = Path(out_dir) / f"{Path(profile).stem}.participant{participant_id}.xml"
+    out.write_text(text)
+    return out
 
 
 def with_transport_profile(env: dict[str, str]) -> dict[str, str]:
