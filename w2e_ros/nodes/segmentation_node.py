@@ -86,6 +86,10 @@ class SegmentationSettings:
     match_distance: float = param(0.2, "centroid distance that keeps an id across frames (m)",
                                   min=0.0)
     voxel_size: float = param(0.01, "voxel size before clustering (m; 0: off)", min=0.0)
+    max_points: int = param(
+        2_000_000, "clouds with more points are dropped with an error (an Azure Kinect frame "
+        "has at most 1,048,576; a larger cloud is a driver fault that would stall the node)",
+        min=1)
 
 
 class SegmentationNode(Node):
@@ -96,6 +100,7 @@ class SegmentationNode(Node):
         super().__init__("segmentation", **node_kwargs)
         s = declare_typed_parameters(self, SegmentationSettings)
         self.settings = s
+        self.dropped = 0  # malformed or unusable camera clouds skipped since start
         self.get_logger().info(f"settings: {describe(s)}")
         if len(s.workspace_min) != 3 or len(s.workspace_max) != 3:
             raise ValueError("workspace_min and workspace_max need 3 values each")
@@ -135,6 +140,9 @@ class SegmentationNode(Node):
     def process(self, msg: PointCloud2) -> SegmentedObjects:
         """Segment one cloud message; raises CloudFormatError / ValueError for a bad one
         (FrameError, a CloudFormatError, when there is no transform into frame_id)."""
+        if msg.width * msg.height > self.settings.max_points:
+            raise CloudFormatError(f"{msg.width} x {msg.height} points is more than max_points "
+                                   f"{self.settings.max_points}")
         names = {f.name for f in msg.fields}
         wanted = tuple(f for f, on in ((LABEL_FIELD, self.settings.use_labels),
                                        (MOVABLE_FIELD, self.settings.forward_movable))
@@ -162,12 +170,20 @@ class SegmentationNode(Node):
                 num_raw_points=int(seg.num_raw_points)))
         return out
 
+    def destroy_node(self) -> None:
+        """Say at shutdown how many camera clouds were skipped (the errors are throttled)."""
+        if self.dropped:
+            self.get_logger().info(f"{self.dropped} camera cloud(s) skipped in all")
+        super().destroy_node()
+
     def _on_cloud(self, msg: PointCloud2) -> None:
         t0 = time.perf_counter()
         try:
             out = self.process(msg)
         except (CloudFormatError, ValueError) as err:
-            self.get_logger().error(f"skipping camera cloud: {err}", throttle_duration_sec=5.0)
+            self.dropped += 1
+            self.get_logger().error(f"skipping camera cloud ({self.dropped} dropped so far): "
+                                    f"{err}", throttle_duration_sec=5.0)
             return
         self._pub.publish(out)
         self.get_logger().debug(

@@ -191,6 +191,12 @@ def cloud_dtype(msg: PointCloud2) -> np.dtype:
         names.append(f.name)
         formats.append(fmt)
         offsets.append(f.offset)
+    spans = sorted((o, o + fmt.itemsize, n) for o, fmt, n in zip(offsets, formats, names,
+                                                                 strict=True))
+    for (_, end, a), (start, _, b) in zip(spans, spans[1:], strict=False):
+        if start < end:
+            raise CloudFormatError(f"fields {a!r} and {b!r} overlap (offsets in point_step "
+                                   f"{msg.point_step})")
     return np.dtype(
         {"names": names, "formats": formats, "offsets": offsets, "itemsize": msg.point_step})
 
@@ -206,9 +212,10 @@ def cloud_to_structured(msg: PointCloud2) -> np.ndarray:
         raise CloudFormatError(f"row_step {row_step} < width {w} x point_step {msg.point_step}")
     buf = np.frombuffer(msg.data, dtype=np.uint8)
     need = row_step * (h - 1) + w * msg.point_step
-    if buf.size < need:
+    if not need <= buf.size <= row_step * h:
         raise CloudFormatError(
-            f"data has {buf.size} bytes; {h} rows of {w} points need {need}")
+            f"data has {buf.size} bytes; {h} rows of {w} points of row_step {row_step} "
+            f"need {need}" + ("" if need == row_step * h else f" to {row_step * h}"))
     # rows may be padded: a strided view handles both layouts, reshape copies only if padded
     grid = np.ndarray((h, w), dtype=dtype, buffer=buf, strides=(row_step, msg.point_step))
     return grid.reshape(-1)
