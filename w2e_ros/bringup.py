@@ -416,7 +416,11 @@ class Stack:
                 pending = {p.spec.name: p for p in self.procs}
             deadline = time.monotonic() + timeout
             while pending:
+                with self._procs_lock:  # the respawn thread may have replaced a process
+                    pending = {p.spec.name: p for p in self.procs if p.spec.name in pending}
                 for name, proc in list(pending.items()):
+                    if proc.popen.poll() is not None and self.respawn and not proc.given_up:
+                        continue  # dead, to be started again: wait for its successor
                     if proc.popen.poll() is not None:
                         proc.join()
                         tail = "\n  ".join(proc.tail)
