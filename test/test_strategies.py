@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 import pytest
 
-from w2e_ros.core.strategies import Scored, get_strategy
+from w2e_ros.core.selection import allocate
+from w2e_ros.core.strategies import STRATEGIES, Scored, get_strategy
 
 
 def _scored() -> list[Scored]:
@@ -126,3 +130,190 @@ def test_similarity_failure_half_takes_half_by_the_rule_and_half_at_random():
     # the random half reaches predicted successes, which the rule alone never takes first
     assert any(scored[o].affordance[c] > 0.5 for o, c in picks[20:])
     assert all(scored[o].affordance[c] <= 0.5 for o, c in first)
+
+
+# --- the set-based interface: the key rules keep their picks -------------------------------
+
+GOLDEN = Path(__file__).parent / "golden" / "strategy_picks.json"
+GOLDEN_SIZES = (5, 0, 12, 7, 1, 9)  # an object without candidates among them
+
+
+def _golden_inputs(seed: int) -> tuple[list[Scored], list[np.ndarray]]:
+    """The inputs the golden picks were recorded on (with the per-candidate code of
+    2026-12-06, before the set interface)."""
+    rng = np.random.default_rng(1000 + seed)
+    scored, labels = [], []
+    for n in GOLDEN_SIZES:
+        scored.append(Scored(affordance=rng.random(n).astype(np.float32),
+                             similarity=rng.random(n).astype(np.float32),
+                             familiarity=-rng.random(n).astype(np.float32)))
+        labels.append((rng.random(n) < 0.4).astype(np.float32))
+    return scored, labels
+
+
+def test_every_old_rule_gives_the_picks_it_gave_before_the_set_interface():
+    """Picks recorded with the per-candidate keys and ``_lowest`` (commit 58992a1): every
+    old rule, two seeds, four (budget, limit) cases, two rounds on one generator (so the
+    generator is consumed as before too)."""
+    golden = json.loads(GOLDEN.read_text())
+    names = {key.split("|")[0] for key in golden}
+    assert names == {n for n, s in STRATEGIES.items() if s.explores and not s.needs_features
+                     and n != "balanced"}
+    for key, want in golden.items():
+        name, seed, k, lim = key.split("|")
+        scored, labels = _golden_inputs(int(seed))
+        rule = get_strategy(name)
+        rng = np.random.default_rng(int(seed))
+        got = [rule.select(scored, int(k), json.loads(lim), rng,
+                           labels if rule.needs_labels else None) for _ in range(2)]
+        assert [[list(p) for p in r] for r in got] == want, key
+
+
+# --- the set rules ---------------------------------------------------------------------------
+
+SET_RULES = ["coverage_success", "typiclust", "probcover", "similarity_coverage", "balanced"]
+N_CLUSTERS, PER_CLUSTER, FEAT_DIM = 8, 60, 16
+
+
+def _clustered(seed: int = 0, n_objects: int = 24) -> tuple[list[Scored], np.ndarray]:
+    """Candidates in N_CLUSTERS well-separated feature blobs, spread over ``n_objects``
+    objects; returns the scored objects and each candidate's blob (flat, in pool order)."""
+    rng = np.random.default_rng(seed)
+    centres = np.eye(FEAT_DIM)[:N_CLUSTERS] * 10.0
+    blob = rng.permutation(np.repeat(np.arange(N_CLUSTERS), PER_CLUSTER))
+    feats = (centres[blob] + rng.normal(0, 0.3, (len(blob), FEAT_DIM))).astype(np.float32)
+    obj = np.sort(rng.integers(0, n_objects, len(blob)))
+    scored = [Scored(affordance=rng.random(int((obj == o).sum())),
+                     similarity=rng.random(int((obj == o).sum())),
+                     features=feats[obj == o]) for o in range(n_objects)]
+    return scored, np.concatenate([blob[obj == o] for o in range(n_objects)])
+
+
+def _flat(scored: list[Scored], picks: list[tuple[int, int]]) -> list[int]:
+    starts = np.cumsum([0] + [len(s.affordance) for s in scored])
+    return [int(starts[o] + c) for o, c in picks]
+
+
+@pytest.mark.parametrize("name", SET_RULES)
+@pytest.mark.parametrize("k,limit", [(8, 1), (20, 2), (5, 3)])
+def test_set_rules_return_k_distinct_candidates_within_the_limits(name, k, limit):
+    scored, _ = _clustered()
+    picks = get_strategy(name).select(scored, k, limit, np.random.default_rng(3))
+    assert len(picks) == k and len(set(picks)) == k
+    assert max(np.bincount([o for o, _ in picks])) <= limit
+    assert all(0 <= c < len(scored[o].affordance) for o, c in picks)
+
+
+@pytest.mark.parametrize("name", SET_RULES)
+def test_set_rules_respect_per_object_limits_given_per_object(name):
+    scored, _ = _clustered()
+    limits = [0 if o % 3 == 0 else 1 for o in range(len(scored))]  # a third of them closed
+    picks = get_strategy(name).select(scored, 12, limits, np.random.default_rng(1))
+    assert len(picks) == 12
+    counts = np.bincount([o for o, _ in picks], minlength=len(scored))
+    assert np.all(counts <= limits)
+
+
+@pytest.mark.parametrize("name", SET_RULES)
+def test_set_rules_are_deterministic_per_seed(name):
+    scored, _ = _clustered()
+    rule = get_strategy(name)
+    a = rule.select(scored, 10, 2, np.random.default_rng(5))
+    assert a == rule.select(scored, 10, 2, np.random.default_rng(5))
+    others = [rule.select(scored, 10, 2, np.random.default_rng(s)) for s in range(6, 10)]
+    if name != "typiclust":  # typiclust's most typical points barely depend on the seed
+        assert any(o != a for o in others)
+
+
+@pytest.mark.parametrize("name", ["coverage_success", "typiclust", "probcover"])
+def test_coverage_rules_spread_a_round_over_the_feature_clusters(name):
+    """k = clusters: one pick in every blob (random hits all 8 blobs with 8 picks in only
+    8!/8^8 = 0.24 % of rounds)."""
+    scored, blob = _clustered()
+    for seed in range(5):
+        picks = get_strategy(name).select(scored, N_CLUSTERS, 2, np.random.default_rng(seed))
+        assert len(set(blob[_flat(scored, picks)])) == N_CLUSTERS, seed
+
+
+def test_typiclust_covers_the_clusters_the_explored_set_left_out():
+    """One interaction explored in each of six blobs: explored + budget = 8 clusters, the
+    blobs, and the round of two goes to the two blobs left."""
+    scored, blob = _clustered()
+    feats = np.concatenate([s.features for s in scored])
+    explored = np.stack([feats[blob == b][0] for b in range(6)])
+    for seed in range(3):
+        picks = get_strategy("typiclust").select(scored, 2, 2, np.random.default_rng(seed),
+                                                 explored=explored)
+        assert set(blob[_flat(scored, picks)]) == {6, 7}, seed
+
+
+def test_typiclust_takes_a_dense_point_not_an_outlier():
+    """One tight blob with a far outlier: the most typical pick is inside the blob."""
+    rng = np.random.default_rng(0)
+    feats = np.concatenate([rng.normal(0, 0.05, (50, 4)) + [1, 0, 0, 0],
+                            [[0.6, 0.8, 0, 0]]]).astype(np.float32)
+    scored = [Scored(np.full(51, 0.5), np.full(51, 0.5), features=feats)]
+    (o, c), = get_strategy("typiclust").select(scored, 1, 1, np.random.default_rng(0))
+    assert c != 50
+
+
+@pytest.mark.parametrize("name", ["coverage_success", "similarity_coverage", "balanced"])
+def test_success_seeking_rules_pick_more_likely_successes_than_random(name):
+    """Affordance skewed low (most candidates look like failures, as on pulls): over rounds
+    the rule's picks are predicted successes (> 0.5) far more often than random's."""
+    rng = np.random.default_rng(0)
+    scored, _ = _clustered()
+    for s in scored:
+        s.affordance = rng.beta(0.5, 4.0, len(s.affordance))
+    rule, rand = get_strategy(name), get_strategy("random")
+
+    def high(r) -> float:
+        picks = [p for seed in range(20)
+                 for p in r.select(scored, 8, 2, np.random.default_rng(seed))]
+        return float(np.mean([scored[o].affordance[c] > 0.5 for o, c in picks]))
+
+    assert high(rule) > high(rand) + 0.2
+
+
+def test_similarity_coverage_gives_the_unfamiliar_objects_the_round():
+    """Half the objects familiar (similarity 0.95), half not (0.2): nearly all picks land on
+    the unfamiliar ones; within one, its picks fall in different blobs."""
+    scored, blob = _clustered()
+    for o, s in enumerate(scored):
+        s.similarity = np.full(len(s.affordance), 0.95 if o % 2 else 0.2)
+    picks = get_strategy("similarity_coverage").select(scored, 12, 2, np.random.default_rng(0))
+    assert sum(o % 2 == 0 for o, _ in picks) >= 11
+    flat = np.array(_flat(scored, picks))
+    for o in {o for o, _ in picks}:
+        mine = [f for (p, _), f in zip(picks, flat, strict=True) if p == o]
+        if len(mine) == 2:
+            assert blob[mine[0]] != blob[mine[1]] or len(set(blob[
+                _flat(scored, [(o, c) for c in range(len(scored[o].affordance))])])) == 1
+
+
+def test_allocate_is_proportional_within_caps():
+    q = allocate(np.array([3.0, 1.0, 0.0, 4.0]), 6, np.array([2, 5, 5, 2]))
+    assert q.sum() == 6 and np.all(q <= [2, 5, 5, 2]) and q[0] == 2 and q[3] == 2
+    assert list(allocate(np.ones(3), 10, np.array([1, 1, 1]))) == [1, 1, 1]
+
+
+def test_balanced_takes_half_predicted_successes_half_near_the_boundary():
+    aff = np.array([0.95, 0.9, 0.85, 0.8, 0.52, 0.48, 0.1, 0.05, 0.02, 0.01])
+    scored = [Scored(aff, np.zeros(10))]
+    picks = [c for _, c in get_strategy("balanced").select(scored, 4, 4,
+                                                            np.random.default_rng(0))]
+    assert all(aff[c] > 0.5 for c in picks[:2])
+    assert set(picks[2:]) <= {4, 5, 3, 2} and len(set(picks)) == 4
+
+
+def test_feature_rules_say_they_need_features_and_are_offline_only():
+    scored = [Scored(np.array([0.2, 0.7]), np.array([0.5, 0.5]))]
+    for name in ["coverage_success", "typiclust", "probcover", "similarity_coverage"]:
+        rule = get_strategy(name)
+        assert rule.needs_features and rule.offline_only
+        with pytest.raises(ValueError, match="features"):
+            rule.select(scored, 1, 1, np.random.default_rng(0))
+    assert not get_strategy("balanced").offline_only
+    assert not get_strategy("similarity").offline_only and get_strategy("oracle").offline_only
+    with pytest.raises(ValueError, match="sets"):
+        get_strategy("typiclust").keys(scored[0], np.random.default_rng(0))
