@@ -282,6 +282,7 @@ class _Run:
                           if self.pools is None else [])
         self.used: list[set[int]] = [set() for _ in targets]
         self.taken = np.zeros(n, np.int64)  # interactions per object, this run
+        self.explored_features: list[np.ndarray] = []  # (F,) per interaction taken, if scored
         self.cap = math.ceil(cfg.object_cap * cfg.budget) if cfg.object_cap > 0 else None
         self.active = list(range(n))
         self.records: list[StepRecord] = []
@@ -350,8 +351,10 @@ class _Run:
         if self.cap is not None:  # no object is picked beyond its cap
             per_object = [min(self.cfg.per_object_per_round, self.cap - int(self.taken[i]))
                           for i in self.active]
+        explored = (np.stack(self.explored_features) if self.strategy.needs_features
+                    and self.explored_features else None)  # (E, F): what coverage skips
         return self.strategy.select([scored[i] for i in self.active], k, per_object, self.rng,
-                                    cand_labels)
+                                    cand_labels, explored)
 
     def execute(self, picks: list[tuple[int, int]], cands: list[Candidates],
                 scored: list[Scored], obj_mean: list[float],
@@ -369,6 +372,8 @@ class _Run:
             if self.pools is not None:
                 self.used[obj].add(int(cands[obj].source[i]))
             executed.append(Executed(self.clouds[obj], cands[obj], i, result))
+            if scored[obj].features is not None:
+                self.explored_features.append(scored[obj].features[i])
             self.records.append(StepRecord(
                 step=self.spent + len(self.records) + 1, round=self.round,
                 group=self.groups[obj], target=_name(self.targets[obj]),

@@ -316,7 +316,8 @@ class W2EExplorer:
             f = f_all[torch.from_numpy(np.asarray(cand.point_index)).to(self.device)]
             a = torch.from_numpy(encode_rotation(cand.up, cand.forward)).to(self.device)
             aff, sim = self.model.heads(f, a)
-            out.append(Scored(torch.sigmoid(aff).cpu().numpy(), sim.cpu().numpy()))
+            out.append(Scored(torch.sigmoid(aff).cpu().numpy(), sim.cpu().numpy(),
+                              features=f.float().cpu().numpy()))  # (C, F): coverage rules
         return out
 
     # --- fitting ----------------------------------------------------------------------------
