@@ -55,7 +55,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="results/demo", help="directory for the PNGs and summary")
     p.add_argument("--strategy", default="similarity", choices=[
         n for n, st in STRATEGIES.items()
-        if st.explores and not st.needs_labels and not st.needs_familiarity],
+        if st.explores and not st.offline_only],
                    help="the planner's exploration rule (random: the baseline to compare with)")
     p.add_argument("--seed", type=int, default=0,
                    help="the planner's seed (candidate sampling, start states)")

@@ -165,10 +165,11 @@ class PlannerNode(Node):
         super().__init__("planner_node", **kwargs)
         self.settings = declare_typed_parameters(self, PlannerSettings)
         strategy = get_strategy(self.settings.strategy)  # fail at start-up on a typo
-        if strategy.needs_labels or strategy.needs_familiarity:
+        if strategy.offline_only:
             raise ValueError(f"strategy {strategy.name!r} is offline only (w2e fewshot, w2e "
-                             "benchmark): it needs hindsight labels or the training "
-                             "collection, which the stack does not have")
+                             "benchmark): it needs hindsight labels, the training "
+                             "collection or the encoder's features, which the stack does "
+                             "not have")
         s = self.settings
         self.arm = Arm(s.arm, tuple(s.arm_base_pose), tuple(s.arm_workspace_min),
                        tuple(s.arm_workspace_max))  # ValueError names a wrong value
