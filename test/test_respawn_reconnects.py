@@ -138,6 +138,6 @@ def test_every_respawned_node_is_reached_by_the_next_user_call(stack):
                 assert s.participant_ids[name] != old
     took.sort()
     print(f"\n[respawn] {len(took)} kills over {ROUNDS} rounds of {order}: "
-          f"{len(took) - len(failures)} next calls answered; kill -> answer median "
+          f"{len(took) - len(failures)} next calls executed a trial; kill -> answer median "
           f"{took[len(took) // 2]:.1f} s, max {took[-1]:.1f} s")
     assert not failures, failures
