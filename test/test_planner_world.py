@@ -33,6 +33,11 @@ class _Node:
         self.settings = SimpleNamespace(fresh_after_execute=True, observe_timeout_s=1.0)
         self.ns = 0
         self.asked: list[tuple[int, int | None]] = []  # (object, newer_than in ns)
+        self.bridge_restarted = False  # what the planner's PeerWatch of load_scene would say
+
+    def peer_check(self, name):
+        assert name == "load_scene"
+        return lambda: "sim_bridge restarted (a new process)" if self.bridge_restarted else None
 
     def get_clock(self):
         def now() -> Time:
@@ -77,3 +82,19 @@ def test_before_any_interaction_the_frame_after_the_load_is_enough():
     world.seen_after = {3: Time(nanoseconds=500)}
     world.observe(3)
     assert node.asked == [(3, 500)]
+
+
+def test_a_simulator_restarted_during_the_call_ends_it_before_waiting_or_acting():
+    from w2e_ros.ros.futures import StackError
+
+    node = _Node()
+    world = RosWorld(node)
+    _act(world, 1)
+    node.bridge_restarted = True  # its new process shows its initial scene, not ours
+    asked = len(node.asked)
+    with pytest.raises(StackError, match="sim_bridge restarted.*call explore again"):
+        world.observe(1)  # not 40 s of waiting for an object that will not come back
+    with pytest.raises(StackError, match="sim_bridge restarted"):
+        world.execute(1, Action(np.zeros(3), np.array([0.0, 0, 1]), np.array([1.0, 0, 0]),
+                                "pull"))  # nor a trial on another scene
+    assert len(node.asked) == asked

@@ -122,14 +122,24 @@ class RosWorld:
         self.outcomes: list[InteractionOutcome] = []  # of this call, in execution order
         self.last_cloud: dict[int, ObservedCloud] = {}
 
+    def _require_scene(self) -> None:
+        """StackError when the simulator restarted during the call: its new process shows its
+        initial scene, so the objects being explored are gone (waiting for them took 40 s an
+        object, and a trial would act on another scene). The next call reloads and resumes."""
+        if why := self.node.peer_check("load_scene")():
+            raise StackError(f"load_scene: {why}; call explore again to reload the scene and "
+                             "continue the session")
+
     def observe(self, target: int) -> ObservedCloud:
         """The object's cloud in a frame taken after its last interaction. An object the
         segmentation loses after we touched it (moved out of view, occluded) keeps its last
         cloud rather than ending the exploration of every other object."""
+        self._require_scene()
         try:
             msg = self.node.wait_for_objects([target], self._newer_than(target),
                                              self.s.observe_timeout_s)[target]
         except StackError as exc:
+            self._require_scene()
             if int(target) not in self.last_cloud:
                 raise
             self.node.get_logger().warning(f"{exc}; keeping object {target}'s last cloud")
@@ -146,6 +156,7 @@ class RosWorld:
         return max(stamps) if stamps else None
 
     def execute(self, target: int, action: Action) -> TrialResult:
+        self._require_scene()
         outcome = self.node.execute(action_to_interaction(action, object_id=int(target)))
         self.outcomes.append(outcome)
         if self.s.fresh_after_execute:
