@@ -144,10 +144,17 @@ def _normalised_features(pool: Pool) -> np.ndarray:
     return x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), EPS)
 
 
-def sq_distances(x: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """Squared Euclidean distances (N, M) as one matrix product (faster than broadcasting)."""
-    d = (x * x).sum(1)[:, None] - 2.0 * x @ c.T + (c * c).sum(1)[None, :]
+def sq_distances(x: np.ndarray, c: np.ndarray, x_sq: np.ndarray | None = None) -> np.ndarray:
+    """Squared Euclidean distances (N, M) as one matrix product (faster than broadcasting);
+    ``x_sq``: the rows' squared norms (N,) when the caller has them."""
+    x_sq = (x * x).sum(1) if x_sq is None else x_sq
+    d = x_sq[:, None] - 2.0 * x @ c.T + (c * c).sum(1)[None, :]
     return np.maximum(d, 0.0)
+
+
+def _nearest(x: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Index of each row's nearest centre (N,): the row norms do not change the argmin."""
+    return ((c * c).sum(1)[None, :] - 2.0 * x @ c.T).argmin(1)
 
 
 def kmeans(x: np.ndarray, k: int, rng: np.random.Generator, iters: int = KMEANS_ITERS,
@@ -158,9 +165,10 @@ def kmeans(x: np.ndarray, k: int, rng: np.random.Generator, iters: int = KMEANS_
     n = len(x)
     k = max(1, min(k, n))
     fit = x if n <= fit_sample else x[rng.choice(n, fit_sample, replace=False)]
+    fit_sq = (fit * fit).sum(1)
     centres = np.empty((k, x.shape[1]), x.dtype)
     centres[0] = fit[rng.integers(len(fit))]
-    d2 = sq_distances(fit, centres[:1])[:, 0]
+    d2 = sq_distances(fit, centres[:1], fit_sq)[:, 0]
     trials = 2 + int(np.log(k))  # greedy k-means++ (as scikit-learn): best of a few draws
     for j in range(1, k):  # the next centre far from the chosen ones
         total = d2.sum()
@@ -168,18 +176,18 @@ def kmeans(x: np.ndarray, k: int, rng: np.random.Generator, iters: int = KMEANS_
             centres[j] = fit[rng.integers(len(fit))]
             continue
         cand = rng.choice(len(fit), size=trials, p=d2 / total)
-        pot = np.minimum(d2[:, None], sq_distances(fit, fit[cand]))  # (n, trials)
+        pot = np.minimum(d2[:, None], sq_distances(fit, fit[cand], fit_sq))  # (n, trials)
         best = int(np.argmin(pot.sum(0)))
         centres[j] = fit[cand[best]]
         d2 = pot[:, best]
     for _ in range(iters):
-        lab = sq_distances(fit, centres).argmin(1)
+        lab = _nearest(fit, centres)
         sums = np.zeros_like(centres)
         np.add.at(sums, lab, fit)
         counts = np.bincount(lab, minlength=k)
         full = counts > 0  # an emptied cluster keeps its centre
         centres[full] = sums[full] / counts[full, None]
-    return centres, sq_distances(x, centres).argmin(1)
+    return centres, _nearest(x, centres)
 
 
 def _sample(pool: Pool, size: int, rng: np.random.Generator) -> np.ndarray:
