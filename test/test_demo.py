@@ -19,6 +19,7 @@ import pytest
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(1200)  # past the demo's own 900 s limit, which names what it was doing
 def test_w2e_demo_as_typed_learns_the_novel_category(tmp_path: Path):
     w2e = Path(sys.executable).with_name("w2e")
     out = tmp_path / "demo"

@@ -131,6 +131,7 @@ def test_the_stack_nodes_use_udp_and_the_cloud_nodes_fresh_shared_memory_ids(sta
     assert len(set(s.participant_ids.values())) == len(s.participant_ids)
 
 
+@pytest.mark.timeout(max(900, 450 * ROUNDS))  # W2E_RESPAWN_ROUNDS=20 runs for more than 900 s
 def test_every_respawned_node_is_reached_by_the_next_user_call(stack):
     s, env = stack
     first = _manipulate(env)
