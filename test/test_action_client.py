@@ -8,16 +8,14 @@ from __future__ import annotations
 import threading
 import time
 
-import pytest
+import rclpy
+from rclpy.action import ActionClient, ActionServer
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.node import Node
+from w2e_msgs.action import FollowWaypoints
 
-rclpy = pytest.importorskip("rclpy")
-from rclpy.action import ActionClient, ActionServer  # noqa: E402
-from rclpy.executors import MultiThreadedExecutor  # noqa: E402
-from rclpy.node import Node  # noqa: E402
-from w2e_msgs.action import FollowWaypoints  # noqa: E402
-
-from w2e_ros.ros.action_client import LockedActionClient  # noqa: E402
-from w2e_ros.ros.processes import pick_domain_id  # noqa: E402
+from w2e_ros.ros.action_client import LockedActionClient
+from w2e_ros.ros.processes import pick_domain_id
 
 
 class _SlowSend:

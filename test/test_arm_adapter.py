@@ -19,30 +19,27 @@ import time
 
 import numpy as np
 import pytest
+import rclpy
+from nav_msgs.msg import Path
+from rclpy.action import ActionClient
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+from trajectory_msgs.msg import JointTrajectory
+from w2e_msgs.action import FollowWaypoints
 
-rclpy = pytest.importorskip("rclpy")
-pytest.importorskip("w2e_msgs.action", reason="w2e_msgs not built: make interfaces")
-
-from nav_msgs.msg import Path  # noqa: E402
-from rclpy.action import ActionClient  # noqa: E402
-from rclpy.executors import MultiThreadedExecutor  # noqa: E402
-from rclpy.node import Node  # noqa: E402
-from sensor_msgs.msg import JointState  # noqa: E402
-from trajectory_msgs.msg import JointTrajectory  # noqa: E402
-from w2e_msgs.action import FollowWaypoints  # noqa: E402
-
-from w2e_ros.core import kinematics as kin  # noqa: E402
-from w2e_ros.core.primitives import Action  # noqa: E402
-from w2e_ros.ros.conversions import to_pose  # noqa: E402
-from w2e_ros.ros.processes import (  # noqa: E402
+from w2e_ros.core import kinematics as kin
+from w2e_ros.core.primitives import Action
+from w2e_ros.ros.conversions import to_pose
+from w2e_ros.ros.processes import (
     clean_shm_at_exit,
     pick_domain_id,
     ros_env,
     shm_files,
     stop_process,
 )
-from w2e_ros.ros.qos import LATCHED_QOS  # noqa: E402
-from w2e_ros.ros.waypoints import plan_waypoints  # noqa: E402
+from w2e_ros.ros.qos import LATCHED_QOS
+from w2e_ros.ros.waypoints import plan_waypoints
 
 clean_shm_at_exit(shm_files())
 pytestmark = pytest.mark.slow

@@ -10,19 +10,14 @@ import subprocess
 import sys
 
 import numpy as np
-import pytest
+from rclpy.parameter import Parameter
+from w2e_msgs.msg import SceneObject
 
-pytest.importorskip("rclpy")
-pytest.importorskip("w2e_msgs.action", reason="w2e_msgs not built: make interfaces")
-
-from rclpy.parameter import Parameter  # noqa: E402
-from w2e_msgs.msg import SceneObject  # noqa: E402
-
-from w2e_ros.bringup import default_params, node_parameters  # noqa: E402
-from w2e_ros.core import kinematics as kin  # noqa: E402
-from w2e_ros.nodes.arm_adapter_node import ArmAdapterNode  # noqa: E402
-from w2e_ros.nodes.planner_node import PlannerNode  # noqa: E402
-from w2e_ros.ros.processes import pick_domain_id, ros_env  # noqa: E402
+from w2e_ros.bringup import default_params, node_parameters
+from w2e_ros.core import kinematics as kin
+from w2e_ros.nodes.arm_adapter_node import ArmAdapterNode
+from w2e_ros.nodes.planner_node import PlannerNode
+from w2e_ros.ros.processes import pick_domain_id, ros_env
 
 STACK_ARGS = ["--ros-args", "--params-file", str(default_params())]
 

@@ -147,7 +147,6 @@ def _stl_surface(path, n: int, rng: np.random.Generator) -> np.ndarray:
 
 
 def test_the_capsules_and_the_hand_box_enclose_the_panda_collision_meshes():
-    pytest.importorskip("sapien")  # sim_bridge.panda needs it to name the URDF's place
     from sim_bridge.panda import panda_urdf
 
     meshes = panda_urdf().parent.parent / "meshes" / "collision"
@@ -169,7 +168,6 @@ def test_the_capsules_and_the_hand_box_enclose_the_panda_collision_meshes():
 
 
 def test_the_simulated_panda_can_make_the_free_move_from_the_ready_pose():
-    pytest.importorskip("sapien")
     from sim_bridge import panda as sim_panda
     from sim_bridge.objects import make_object
     from sim_bridge.world import ObjectWorld

@@ -8,21 +8,18 @@ import time
 
 import numpy as np
 import pytest
+import rclpy
+from mcap_ros2.reader import read_ros2_messages
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.serialization import deserialize_message
+from sensor_msgs.msg import PointCloud2
+from w2e_msgs.msg import SegmentedObject, SegmentedObjects
 
-rclpy = pytest.importorskip("rclpy")
-pytest.importorskip("w2e_msgs.msg", reason="w2e_msgs not built: make interfaces")
-
-from mcap_ros2.reader import read_ros2_messages  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
-from rclpy.node import Node  # noqa: E402
-from rclpy.serialization import deserialize_message  # noqa: E402
-from sensor_msgs.msg import PointCloud2  # noqa: E402
-from w2e_msgs.msg import SegmentedObject, SegmentedObjects  # noqa: E402
-
-from w2e_ros.ros.bag import BagRecorder, bag_info, message_definition, replay  # noqa: E402
-from w2e_ros.ros.pointcloud import arrays_to_cloud, cloud_to_arrays  # noqa: E402
-from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, ros_env  # noqa: E402
-from w2e_ros.ros.qos import LATCHED_QOS, SENSOR_QOS  # noqa: E402
+from w2e_ros.ros.bag import BagRecorder, bag_info, message_definition, replay
+from w2e_ros.ros.pointcloud import arrays_to_cloud, cloud_to_arrays
+from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, ros_env
+from w2e_ros.ros.qos import LATCHED_QOS, SENSOR_QOS
 
 clean_shm_at_exit()
 

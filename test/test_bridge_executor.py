@@ -11,28 +11,24 @@ import time
 
 import numpy as np
 import pytest
+import rclpy
+from rclpy.action import ActionClient
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from sensor_msgs.msg import JointState, PointCloud2
+from visualization_msgs.msg import MarkerArray
+from w2e_msgs.action import ExecuteInteraction, FollowWaypoints
+from w2e_msgs.msg import Interaction, SceneObject, SegmentedObjects
+from w2e_msgs.srv import LoadScene
 
-pytest.importorskip("rclpy")
-pytest.importorskip("w2e_msgs.msg", reason="w2e_msgs not built: make interfaces")
-
-import rclpy  # noqa: E402
-from rclpy.action import ActionClient  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
-from rclpy.node import Node  # noqa: E402
-from sensor_msgs.msg import JointState, PointCloud2  # noqa: E402
-from visualization_msgs.msg import MarkerArray  # noqa: E402
-from w2e_msgs.action import ExecuteInteraction, FollowWaypoints  # noqa: E402
-from w2e_msgs.msg import Interaction, SceneObject, SegmentedObjects  # noqa: E402
-from w2e_msgs.srv import LoadScene  # noqa: E402
-
-from sim_bridge.objects import make_object  # noqa: E402
-from sim_bridge.world import ObjectWorld  # noqa: E402
-from w2e_ros.bringup import Stack  # noqa: E402
-from w2e_ros.core.primitives import Action  # noqa: E402
-from w2e_ros.ros.conversions import action_to_interaction, from_pose, to_pose  # noqa: E402
-from w2e_ros.ros.pointcloud import cloud_to_arrays  # noqa: E402
-from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, ros_env  # noqa: E402
-from w2e_ros.ros.qos import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS  # noqa: E402
+from sim_bridge.objects import make_object
+from sim_bridge.world import ObjectWorld
+from w2e_ros.bringup import Stack
+from w2e_ros.core.primitives import Action
+from w2e_ros.ros.conversions import action_to_interaction, from_pose, to_pose
+from w2e_ros.ros.pointcloud import cloud_to_arrays
+from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, ros_env
+from w2e_ros.ros.qos import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS
 
 pytestmark = pytest.mark.slow
 clean_shm_at_exit()

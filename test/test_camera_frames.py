@@ -15,17 +15,14 @@ import time
 
 import numpy as np
 import pytest
+import rclpy
+from rclpy.parameter import Parameter
+from scenes import two_cabinets_on_a_table
+from sensor_msgs.msg import PointCloud2, PointField
 
-rclpy = pytest.importorskip("rclpy")
-pytest.importorskip("w2e_msgs.msg", reason="w2e_msgs not built: make interfaces")
-
-from rclpy.parameter import Parameter  # noqa: E402
-from scenes import two_cabinets_on_a_table  # noqa: E402
-from sensor_msgs.msg import PointCloud2, PointField  # noqa: E402
-
-from w2e_ros.ros.conversions import quaternion_from_matrix  # noqa: E402
-from w2e_ros.ros.pointcloud import CloudFormatError, arrays_to_cloud, cloud_to_arrays  # noqa: E402
-from w2e_ros.ros.transforms import (  # noqa: E402
+from w2e_ros.ros.conversions import quaternion_from_matrix
+from w2e_ros.ros.pointcloud import CloudFormatError, arrays_to_cloud, cloud_to_arrays
+from w2e_ros.ros.transforms import (
     CameraFrames,
     FrameError,
     RigidTransform,

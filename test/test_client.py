@@ -8,19 +8,16 @@ import threading
 import time
 
 import pytest
+import rclpy
+from rclpy.action import ActionServer, CancelResponse, GoalResponse
+from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.node import Node
+from w2e_msgs.action import Explore as ExploreAction
+from w2e_msgs.msg import ExplorationProgress
 
-rclpy = pytest.importorskip("rclpy")
-pytest.importorskip("w2e_msgs.msg", reason="w2e_msgs not built: make interfaces")
-
-from rclpy.action import ActionServer, CancelResponse, GoalResponse  # noqa: E402
-from rclpy.callback_groups import ReentrantCallbackGroup  # noqa: E402
-from rclpy.executors import MultiThreadedExecutor  # noqa: E402
-from rclpy.node import Node  # noqa: E402
-from w2e_msgs.action import Explore as ExploreAction  # noqa: E402
-from w2e_msgs.msg import ExplorationProgress  # noqa: E402
-
-from w2e_ros.client import W2EClient  # noqa: E402
-from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, shm_files  # noqa: E402
+from w2e_ros.client import W2EClient
+from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, shm_files
 
 clean_shm_at_exit(shm_files())
 

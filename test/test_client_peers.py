@@ -19,12 +19,9 @@ import time
 
 import pytest
 
-pytest.importorskip("rclpy")
-pytest.importorskip("w2e_msgs.srv", reason="w2e_msgs not built: make interfaces")
-
-from w2e_ros.client import StackCallError, W2EClient  # noqa: E402
-from w2e_ros.ros.peers import LEASE_S  # noqa: E402
-from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, ros_env  # noqa: E402
+from w2e_ros.client import StackCallError, W2EClient
+from w2e_ros.ros.peers import LEASE_S
+from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, ros_env
 
 clean_shm_at_exit()
 

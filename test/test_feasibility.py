@@ -256,7 +256,6 @@ def test_bad_input_is_refused_with_a_clear_error(cloud, point, up, fwd, primitiv
 
 def test_the_simulated_hand_is_built_from_the_contract_boxes():
     """One definition: the simulator's gripper shapes are the boxes the check sweeps."""
-    pytest.importorskip("sapien")
     from sim_bridge.geometry import sapien_to_pose
     from sim_bridge.physics import build_gripper, make_scene
 
@@ -283,7 +282,6 @@ def test_a_rejected_approach_is_invalid_in_the_simulator():
     from inside the body, runs the hand through the cabinet's top panel: the check rejects it
     and the simulator finds the hand in contact at its first step. From the front the same
     push is clear and valid."""
-    pytest.importorskip("sapien")
     from w2e_ros.core.primitives import Action
     from w2e_ros.core.targets import Target
     from w2e_ros.experiments.sim_world import SimWorld

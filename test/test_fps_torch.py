@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import sys
 
+import fpsample
 import numpy as np
 import pytest
 import torch
@@ -25,7 +26,6 @@ from w2e_ros.core.model import W2EModel
 from w2e_ros.core.pointcloud import fps_indices
 from w2e_ros.core.pointnet2_geometry import farthest_point_sample
 
-fpsample = pytest.importorskip("fpsample")
 torch.set_num_threads(1)
 
 

@@ -19,31 +19,27 @@ import time
 
 import numpy as np
 import pytest
+import rclpy
+from control_msgs.action import GripperCommand
+from control_msgs.msg import GripperCommand as Command
+from franka_msgs.action import Grasp, Move
+from franka_msgs.msg import GraspEpsilon
+from rclpy.action import ActionClient
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+from w2e_msgs.action import FollowWaypoints
 
-rclpy = pytest.importorskip("rclpy")
-pytest.importorskip("control_msgs.action", reason="control_msgs not built: make interfaces")
-pytest.importorskip("franka_msgs.action", reason="franka_msgs not built: make interfaces")
-
-from control_msgs.action import GripperCommand  # noqa: E402
-from control_msgs.msg import GripperCommand as Command  # noqa: E402
-from franka_msgs.action import Grasp, Move  # noqa: E402
-from franka_msgs.msg import GraspEpsilon  # noqa: E402
-from rclpy.action import ActionClient  # noqa: E402
-from rclpy.executors import MultiThreadedExecutor  # noqa: E402
-from rclpy.node import Node  # noqa: E402
-from sensor_msgs.msg import JointState  # noqa: E402
-from w2e_msgs.action import FollowWaypoints  # noqa: E402
-
-from w2e_ros.core import kinematics as kin  # noqa: E402
-from w2e_ros.ros.conversions import to_pose  # noqa: E402
-from w2e_ros.ros.processes import (  # noqa: E402
+from w2e_ros.core import kinematics as kin
+from w2e_ros.ros.conversions import to_pose
+from w2e_ros.ros.processes import (
     clean_shm_at_exit,
     pick_domain_id,
     ros_env,
     stop_process,
 )
-from w2e_ros.ros.qos import RELIABLE_QOS  # noqa: E402
-from w2e_ros.ros.waypoints import GRIPPER_CLOSE, GRIPPER_KEEP, GRIPPER_OPEN  # noqa: E402
+from w2e_ros.ros.qos import RELIABLE_QOS
+from w2e_ros.ros.waypoints import GRIPPER_CLOSE, GRIPPER_KEEP, GRIPPER_OPEN
 
 clean_shm_at_exit()
 pytestmark = pytest.mark.slow

@@ -12,25 +12,22 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import rclpy
+import torch
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import PointCloud2
+from std_srvs.srv import Trigger
+from w2e_msgs.msg import InteractionOutcome
+from w2e_msgs.srv import PredictMaps, UpdateModel
 
-rclpy = pytest.importorskip("rclpy")
-pytest.importorskip("w2e_msgs.msg", reason="w2e_msgs not built: make interfaces")
-
-import torch  # noqa: E402
-from rclpy.executors import MultiThreadedExecutor  # noqa: E402
-from rclpy.node import Node  # noqa: E402
-from rclpy.parameter import Parameter  # noqa: E402
-from sensor_msgs.msg import PointCloud2  # noqa: E402
-from std_srvs.srv import Trigger  # noqa: E402
-from w2e_msgs.msg import InteractionOutcome  # noqa: E402
-from w2e_msgs.srv import PredictMaps, UpdateModel  # noqa: E402
-
-from w2e_ros.core.config import ModelConfig  # noqa: E402
-from w2e_ros.core.model import W2EModel, load_model, save_model  # noqa: E402
-from w2e_ros.nodes.inference_node import InferenceNode  # noqa: E402
-from w2e_ros.ros.pointcloud import arrays_to_cloud, cloud_to_arrays, unpack_rgb  # noqa: E402
-from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, shm_files  # noqa: E402
-from w2e_ros.ros.qos import LATCHED_QOS  # noqa: E402
+from w2e_ros.core.config import ModelConfig
+from w2e_ros.core.model import W2EModel, load_model, save_model
+from w2e_ros.nodes.inference_node import InferenceNode
+from w2e_ros.ros.pointcloud import arrays_to_cloud, cloud_to_arrays, unpack_rgb
+from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, shm_files
+from w2e_ros.ros.qos import LATCHED_QOS
 
 SMALL = ModelConfig(num_points=256, sa_npoint=(64, 16, 8, 4))
 clean_shm_at_exit(shm_files())

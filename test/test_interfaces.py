@@ -13,20 +13,17 @@ import time
 
 import numpy as np
 import pytest
+import rclpy
+from rclpy.action import ActionClient, ActionServer
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from sensor_msgs.msg import PointCloud2
+from w2e_msgs.action import ExecuteInteraction
+from w2e_msgs.msg import AffordanceMap, Interaction, InteractionOutcome
+from w2e_msgs.srv import PredictMaps
 
-rclpy = pytest.importorskip("rclpy")
-w2e_msgs = pytest.importorskip("w2e_msgs.msg", reason="w2e_msgs not built: make interfaces")
-
-from rclpy.action import ActionClient, ActionServer  # noqa: E402
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor  # noqa: E402
-from rclpy.node import Node  # noqa: E402
-from sensor_msgs.msg import PointCloud2  # noqa: E402
-from w2e_msgs.action import ExecuteInteraction  # noqa: E402
-from w2e_msgs.msg import AffordanceMap, Interaction, InteractionOutcome  # noqa: E402
-from w2e_msgs.srv import PredictMaps  # noqa: E402
-
-from w2e_ros.ros.pointcloud import arrays_to_cloud, cloud_to_arrays  # noqa: E402
-from w2e_ros.ros.processes import (  # noqa: E402
+from w2e_ros.ros.pointcloud import arrays_to_cloud, cloud_to_arrays
+from w2e_ros.ros.processes import (
     clean_shm,
     clean_shm_at_exit,
     pick_domain_id,
@@ -34,7 +31,7 @@ from w2e_ros.ros.processes import (  # noqa: E402
     shm_files,
     stop_process,
 )
-from w2e_ros.ros.qos import SENSOR_QOS  # noqa: E402
+from w2e_ros.ros.qos import SENSOR_QOS
 
 N_POINTS = 10_000
 _SHM_BEFORE = shm_files()

@@ -14,14 +14,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from builtin_interfaces.msg import Time
+from visualization_msgs.msg import Marker
 
-pytest.importorskip("visualization_msgs.msg")
-
-from builtin_interfaces.msg import Time  # noqa: E402
-from visualization_msgs.msg import Marker  # noqa: E402
-
-from w2e_ros.core.primitives import Action  # noqa: E402
-from w2e_ros.ros.markers import (  # noqa: E402
+from w2e_ros.core.primitives import Action
+from w2e_ros.ros.markers import (
     APPROACH_LENGTH,
     ARROW,
     COLOURS,
@@ -31,7 +28,7 @@ from w2e_ros.ros.markers import (  # noqa: E402
     interaction_markers,
     outcome_state,
 )
-from w2e_ros.ros.waypoints import plan_waypoints  # noqa: E402
+from w2e_ros.ros.waypoints import plan_waypoints
 
 ROOT = Path(__file__).resolve().parents[1]
 PULL = Action(np.array([0.4, -0.1, 0.6]), np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0]),

@@ -261,8 +261,6 @@ def _wait(future, timeout: float):
 
 @pytest.mark.slow
 def test_executor_outcome_source_switches_what_success_is_judged_from(drawer):
-    pytest.importorskip("rclpy")
-    pytest.importorskip("w2e_msgs.msg", reason="w2e_msgs not built: make interfaces")
     t0 = time.monotonic()
     push_top = Action(drawer.body_top, np.array([0.0, 0.0, -1.0]), np.array([1.0, 0.0, 0.0]),
                       "push")

@@ -12,6 +12,7 @@ import time
 
 import numpy as np
 import pytest
+import rclpy
 
 from sim_bridge import panda as sim_panda
 from sim_bridge.objects import make_object
@@ -148,7 +149,6 @@ def test_live_arm_follows_a_trajectory_and_closes_the_fingers(drawer):
 
 
 # -- through the stack ------------------------------------------------------------------------
-rclpy = pytest.importorskip("rclpy")
 
 
 @pytest.mark.slow
@@ -156,7 +156,6 @@ def test_pull_through_the_stack_with_the_simulated_panda_opens_a_drawer(tmp_path
     """bridge (robot panda) + segmentation + executor (outcome from clouds, as on a real arm)
     + the arm adapter live; a plain rclpy client loads a closed drawer cabinet and sends the
     pull: the drawer opens in the simulated world."""
-    pytest.importorskip("w2e_msgs.action", reason="w2e_msgs not built: make interfaces")
     from rclpy.action import ActionClient
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node

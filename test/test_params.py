@@ -11,20 +11,17 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+from rclpy.node import Node
+from rclpy.parameter import Parameter
 
-pytest.importorskip("rclpy")
-
-from rclpy.node import Node  # noqa: E402
-from rclpy.parameter import Parameter  # noqa: E402
-
-from w2e_ros.core.config import ExploreConfig, FinetuneConfig  # noqa: E402
-from w2e_ros.ros.params import (  # noqa: E402
+from w2e_ros.core.config import ExploreConfig, FinetuneConfig
+from w2e_ros.ros.params import (
     ParameterError,
     declare_typed_parameters,
     param,
     setting_param,
 )
-from w2e_ros.ros.processes import pick_domain_id, ros_env, stop_process  # noqa: E402
+from w2e_ros.ros.processes import pick_domain_id, ros_env, stop_process
 
 
 @dataclass

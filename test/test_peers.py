@@ -20,18 +20,14 @@ import time
 from types import SimpleNamespace
 
 import pytest
+import rclpy
+from rclpy.executors import MultiThreadedExecutor
+from std_msgs.msg import String
+from w2e_msgs.srv import PredictMaps
 
-pytest.importorskip("rclpy")
-pytest.importorskip("w2e_msgs.srv", reason="w2e_msgs not built: make interfaces")
-
-import rclpy  # noqa: E402
-from rclpy.executors import MultiThreadedExecutor  # noqa: E402
-from std_msgs.msg import String  # noqa: E402
-from w2e_msgs.srv import PredictMaps  # noqa: E402
-
-from w2e_ros.nodes.planner_node import PlannerNode, StackError  # noqa: E402
-from w2e_ros.ros.peers import LEASE_S  # noqa: E402
-from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, ros_env  # noqa: E402
+from w2e_ros.nodes.planner_node import PlannerNode, StackError
+from w2e_ros.ros.peers import LEASE_S
+from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, ros_env
 
 clean_shm_at_exit()
 

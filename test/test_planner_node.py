@@ -17,11 +17,8 @@ import time
 
 import pytest
 
-pytest.importorskip("rclpy")
-pytest.importorskip("w2e_msgs.msg", reason="w2e_msgs not built: make interfaces")
-
-from w2e_ros.bringup import Stack  # noqa: E402
-from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, ros_env  # noqa: E402
+from w2e_ros.bringup import Stack
+from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, ros_env
 
 pytestmark = pytest.mark.slow
 clean_shm_at_exit()

@@ -14,16 +14,12 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from rclpy.time import Time
+from w2e_msgs.msg import InteractionOutcome, SegmentedObject
 
-pytest.importorskip("rclpy")
-pytest.importorskip("w2e_msgs.msg", reason="w2e_msgs not built: make interfaces")
-
-from rclpy.time import Time  # noqa: E402
-from w2e_msgs.msg import InteractionOutcome, SegmentedObject  # noqa: E402
-
-from w2e_ros.core.primitives import Action  # noqa: E402
-from w2e_ros.nodes.planner_node import RosWorld  # noqa: E402
-from w2e_ros.ros.pointcloud import arrays_to_cloud  # noqa: E402
+from w2e_ros.core.primitives import Action
+from w2e_ros.nodes.planner_node import RosWorld
+from w2e_ros.ros.pointcloud import arrays_to_cloud
 
 
 class _Node:

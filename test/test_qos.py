@@ -5,16 +5,12 @@ from __future__ import annotations
 
 import time
 
-import pytest
+import rclpy
+from rclpy.node import Node
+from std_msgs.msg import String
 
-pytest.importorskip("rclpy")
-
-import rclpy  # noqa: E402
-from rclpy.node import Node  # noqa: E402
-from std_msgs.msg import String  # noqa: E402
-
-from w2e_ros.ros.processes import pick_domain_id  # noqa: E402
-from w2e_ros.ros.qos import RELIABLE_QOS, SENSOR_QOS  # noqa: E402
+from w2e_ros.ros.processes import pick_domain_id
+from w2e_ros.ros.qos import RELIABLE_QOS, SENSOR_QOS
 
 
 def test_a_reliable_subscriber_does_not_match_a_best_effort_publisher():

@@ -11,11 +11,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import ray
 
-ray = pytest.importorskip("ray")
-
-from w2e_ros.experiments.backends import LocalBackend, RayBackend, make_backend, resolve  # noqa: E402
-from w2e_ros.experiments.collect import CollectConfig, collect  # noqa: E402
+from w2e_ros.experiments.backends import LocalBackend, RayBackend, make_backend, resolve
+from w2e_ros.experiments.collect import CollectConfig, collect
 
 
 @pytest.fixture(scope="module")

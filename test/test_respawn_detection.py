@@ -15,17 +15,13 @@ import signal
 import time
 
 import pytest
+import torch
+from scenes import Tee
+from test_resume import CATEGORY, PRIMITIVE, STATUS, ActionUser
 
-pytest.importorskip("rclpy")
-pytest.importorskip("w2e_msgs.action", reason="w2e_msgs not built: make interfaces")
-
-import torch  # noqa: E402
-from scenes import Tee  # noqa: E402
-from test_resume import CATEGORY, PRIMITIVE, STATUS, ActionUser  # noqa: E402
-
-from w2e_ros.bringup import Stack  # noqa: E402
-from w2e_ros.core.model import W2EModel, save_model  # noqa: E402
-from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, ros_env  # noqa: E402
+from w2e_ros.bringup import Stack
+from w2e_ros.core.model import W2EModel, save_model
+from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, ros_env
 
 pytestmark = pytest.mark.slow
 clean_shm_at_exit()

@@ -24,17 +24,13 @@ import time
 from pathlib import Path
 
 import pytest
+import torch
+from scenes import Tee
 
-pytest.importorskip("rclpy")
-pytest.importorskip("w2e_msgs.action", reason="w2e_msgs not built: make interfaces")
-
-import torch  # noqa: E402
-from scenes import Tee  # noqa: E402
-
-from w2e_ros.bringup import Stack  # noqa: E402
-from w2e_ros.core.model import W2EModel, save_model  # noqa: E402
-from w2e_ros.core.session_log import EVENTS, session_dir  # noqa: E402
-from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, ros_env  # noqa: E402
+from w2e_ros.bringup import Stack
+from w2e_ros.core.model import W2EModel, save_model
+from w2e_ros.core.session_log import EVENTS, session_dir
+from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, ros_env
 
 pytestmark = pytest.mark.slow
 clean_shm_at_exit()

@@ -8,15 +8,11 @@ from dataclasses import dataclass
 
 import numpy as np
 import pytest
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import PointCloud2, PointField
 
-pytest.importorskip("rclpy")
-pytest.importorskip("w2e_msgs.msg", reason="w2e_msgs not built: make interfaces")
-
-from rclpy.parameter import Parameter  # noqa: E402
-from sensor_msgs.msg import PointCloud2, PointField  # noqa: E402
-
-from w2e_ros.core.primitives import PRIMITIVES, Action, TrialResult  # noqa: E402
-from w2e_ros.ros.conversions import (  # noqa: E402
+from w2e_ros.core.primitives import PRIMITIVES, Action, TrialResult
+from w2e_ros.ros.conversions import (
     action_to_interaction,
     from_pose,
     interaction_to_action,
@@ -24,8 +20,8 @@ from w2e_ros.ros.conversions import (  # noqa: E402
     to_pose,
     trial_result_to_outcome,
 )
-from w2e_ros.ros.params import declare_typed_parameters, param  # noqa: E402
-from w2e_ros.ros.pointcloud import (  # noqa: E402
+from w2e_ros.ros.params import declare_typed_parameters, param
+from w2e_ros.ros.pointcloud import (
     CloudFormatError,
     arrays_to_cloud,
     cloud_to_arrays,
@@ -33,7 +29,7 @@ from w2e_ros.ros.pointcloud import (  # noqa: E402
     pack_rgb,
     unpack_rgb,
 )
-from w2e_ros.ros.waypoints import (  # noqa: E402
+from w2e_ros.ros.waypoints import (
     GRIPPER_CLOSE,
     GRIPPER_OPEN,
     action_from_waypoints,

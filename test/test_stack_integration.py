@@ -13,21 +13,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
+from rclpy.node import Node
+from scenes import Tee
+from sensor_msgs.msg import JointState
 
-pytest.importorskip("rclpy")
-pytest.importorskip("w2e_msgs.msg", reason="w2e_msgs not built: make interfaces")
-
-import torch  # noqa: E402
-from rclpy.node import Node  # noqa: E402
-from scenes import Tee  # noqa: E402
-from sensor_msgs.msg import JointState  # noqa: E402
-
-from sim_bridge.objects import make_object  # noqa: E402
-from w2e_ros.bringup import Stack  # noqa: E402
-from w2e_ros.client import W2EClient  # noqa: E402
-from w2e_ros.core.model import W2EModel, load_model, save_model  # noqa: E402
-from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, ros_env  # noqa: E402
-from w2e_ros.ros.qos import RELIABLE_QOS  # noqa: E402
+from sim_bridge.objects import make_object
+from w2e_ros.bringup import Stack
+from w2e_ros.client import W2EClient
+from w2e_ros.core.model import W2EModel, load_model, save_model
+from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, ros_env
+from w2e_ros.ros.qos import RELIABLE_QOS
 
 pytestmark = pytest.mark.slow
 clean_shm_at_exit()

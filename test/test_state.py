@@ -13,23 +13,19 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import rclpy
+from rclpy.node import Node
 
-pytest.importorskip("rclpy")
-pytest.importorskip("w2e_msgs.msg", reason="w2e_msgs not built: make interfaces")
-
-import rclpy  # noqa: E402
-from rclpy.node import Node  # noqa: E402
-
-from w2e_ros.core.primitives import Action, TrialResult  # noqa: E402
-from w2e_ros.core.session_log import open_session  # noqa: E402
-from w2e_ros.ros.params import ParameterError  # noqa: E402
-from w2e_ros.ros.processes import (  # noqa: E402
+from w2e_ros.core.primitives import Action, TrialResult
+from w2e_ros.core.session_log import open_session
+from w2e_ros.ros.params import ParameterError
+from w2e_ros.ros.processes import (
     clean_shm_at_exit,
     pick_domain_id,
     ros_env,
     stop_process,
 )
-from w2e_ros.ros.state import scoped_dir, state_scope  # noqa: E402
+from w2e_ros.ros.state import scoped_dir, state_scope
 
 clean_shm_at_exit()
 

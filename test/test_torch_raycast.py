@@ -60,7 +60,8 @@ def _common(a, b) -> tuple[np.ndarray, np.ndarray]:
 
 @pytest.mark.parametrize("category", CATEGORIES)
 def test_torch_camera_sees_what_open3d_sees(category: str) -> None:
-    pytest.importorskip("open3d")
+    import open3d  # noqa: F401  (requirements.txt: open3d-cpu; the reference)
+
     from sim_bridge.camera import RaycastCamera
 
     world, q, pose = _scene(category)
@@ -88,7 +89,8 @@ def test_torch_camera_sees_what_open3d_sees(category: str) -> None:
 @pytest.mark.parametrize("category", CATEGORIES)
 def test_locate_answers_as_open3d_does(category: str) -> None:
     """Points on the surface (ties between links meeting there) and 2 cm off it."""
-    pytest.importorskip("open3d")
+    import open3d  # noqa: F401  (requirements.txt: open3d-cpu; the reference)
+
     from sim_bridge.world import nearest_mesh_open3d
 
     world, q, pose = _scene(category)
@@ -184,7 +186,8 @@ def test_without_open3d_the_world_sees_and_locates_with_torch() -> None:
 
 def test_normals_estimated_without_open3d_match_open3d(monkeypatch) -> None:
     """The SAPIEN camera's normals from the cloud: the scipy PCA stands in for Open3D's."""
-    pytest.importorskip("open3d")
+    import open3d  # noqa: F401  (requirements.txt: open3d-cpu; the reference)
+
     import sim_bridge.camera as camera
 
     world = ObjectWorld(make_object("microwave", 1))
