@@ -40,3 +40,37 @@ def result_of(future: Any, timeout: float, what: str, *, executor: Any = None) -
         future.add_done_callback(lambda _f: done.set())
         assert done.wait(timeout), f"timed out after {timeout:g} s waiting for {what}"
     return future.result()
+
+
+class Liveliness:
+    """A reader of the announcement topic of ``name`` (``w2e_ros.ros.peers``) beside the
+    node's own PeerWatch, counting the announcing writers that became alive to this process.
+    Fast DDS asserts automatic liveliness in its own messages, not with the data: a process
+    killed before the first of them arrived was never alive to the reader, and its death is
+    not reported. Create it before the process starts; :meth:`wait` for its writer to count
+    instead of sleeping a lease."""
+
+    def __init__(self, node: Any, name: str) -> None:
+        from rclpy.event_handler import SubscriptionEventCallbacks
+        from std_msgs.msg import String
+
+        from w2e_ros.ros.peers import ALIVE_QOS, alive_topic
+
+        self.name = name
+        self._cv = threading.Condition()
+        self.came_alive = 0
+        self._sub = node.create_subscription(
+            String, alive_topic(node, name), lambda _m: None, ALIVE_QOS,
+            event_callbacks=SubscriptionEventCallbacks(liveliness=self._on_liveliness))
+
+    def _on_liveliness(self, info: Any) -> None:
+        with self._cv:
+            self.came_alive += max(0, info.alive_count_change)
+            self._cv.notify_all()
+
+    def wait(self, count: int, timeout: float = 60.0) -> None:
+        """Until ``count`` writers in all have become alive here."""
+        with self._cv:
+            assert self._cv.wait_for(lambda: self.came_alive >= count, timeout), (
+                f"timed out after {timeout:g} s waiting for writer {count} of {self.name}'s "
+                f"announcement to be alive here ({self.came_alive} so far)")
