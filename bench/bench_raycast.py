@@ -3,7 +3,9 @@ torch sees a GPU), on the same scenes (one object, a random start state and view
 
 The median of ``--repeat`` captures after one warm-up, the whole ``capture`` (ray directions,
 casting, labels); torch on ``--threads`` threads, Open3D on all cores as the camera runs it.
-Prints one row per object and the ratio to Open3D; ``--json`` writes the rows too.
+Prints one row per object and the ratio to Open3D, and ``observe``: the whole simulated
+Kinect frame as the bridge takes it (``ObjectWorld.observe``: posing, the default camera,
+labels); ``--json`` writes the rows too.
 
 Usage: python bench/bench_raycast.py [--objects cabinet:40 kettle:40 ...] [--repeat 5]
        [--threads 1] [--json out.json]
@@ -65,6 +67,13 @@ def bench(objects: list[str], repeat: int) -> list[dict]:
                "hits": len(next(iter(cameras.values())).capture(meshes, pose).points)}
         for name, cam in cameras.items():
             row[name] = round(_median_ms(cam, meshes, pose, repeat), 2)
+        ts = []
+        for i in range(repeat + 1):
+            t = time.perf_counter()
+            world.observe(q, camera_pose=pose)
+            if i:
+                ts.append(time.perf_counter() - t)
+        row["observe"] = round(1e3 * float(np.median(ts)), 2)
         rows.append(row)
     return rows
 

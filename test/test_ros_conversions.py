@@ -3,7 +3,6 @@ primitive waypoints."""
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -75,13 +74,13 @@ def test_rgb_is_packed_as_rviz_expects():
                                                            [128, 128, 128]]).all()
 
 
-def test_conversion_of_a_camera_sized_cloud_is_fast():
+def test_a_camera_sized_cloud_round_trips():
+    """How long it takes: bench/bench_large_clouds.py prints it (vectorised: ~10 ms)."""
     pts = np.random.default_rng(0).normal(size=(200_000, 3)).astype(np.float32)
-    t0 = time.perf_counter()
-    msg = arrays_to_cloud(pts, pts, {"a": pts[:, 0]})
-    out = cloud_to_arrays(msg)
-    assert time.perf_counter() - t0 < 0.5  # vectorised: ~10 ms; a per-point loop is seconds
+    out = cloud_to_arrays(arrays_to_cloud(pts, pts, {"a": pts[:, 0]}))
     np.testing.assert_array_equal(out.points, pts)
+    np.testing.assert_array_equal(out.normals, pts)
+    np.testing.assert_array_equal(out.fields["a"], pts[:, 0])
 
 
 def _organised_padded_cloud(big_endian: bool = False) -> tuple[PointCloud2, np.ndarray]:
