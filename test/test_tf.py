@@ -181,15 +181,16 @@ def test_listener_reads_a_tree_published_by_another_process(tmp_path):
         np.testing.assert_allclose(as_matrix(tr), expected(0.8), atol=1e-9)
         # a missing edge: a clear error after the wait, no exception of another kind
         t = time.monotonic()
-        with pytest.raises(TfError, match="frame 'camera_depth_frame' is not in TF"):
+        with pytest.raises(TfError, match=r"frame 'camera_depth_frame' is not in TF.*"
+                                          r"\(waited 0.3 s\)"):
             listener.lookup("world", "camera_depth_frame", stamp, timeout_s=0.3)
-        assert 0.25 < time.monotonic() - t < 5.0
-        # too old for the moving edge: at once, it cannot get better by waiting
+        assert time.monotonic() - t >= 0.3
+        # too old for the moving edge: at once, it cannot get better by waiting (an error
+        # that is not retried says nothing of a wait; a retried one ends "(waited 20 s)")
         old = type("Stamp", (), {"sec": 1_699_999_990, "nanosec": 0})()
-        t = time.monotonic()
-        with pytest.raises(TfError, match="'panda_link0' -> 'panda_link1'.*too old"):
+        with pytest.raises(TfError, match="'panda_link0' -> 'panda_link1'.*too old") as err:
             listener.lookup("world", "camera_optical_frame", old, timeout_s=20.0)
-        assert time.monotonic() - t < 5.0  # not the 20 s timeout (1.1 s seen under load)
+        assert not err.value.retriable and "waited" not in str(err.value), err.value
     finally:
         exe.shutdown()
         node.destroy_node()
