@@ -15,8 +15,10 @@ import numpy as np
 import pytest
 import torch
 from rclpy.node import Node
+from rclpy.time import Time
 from scenes import Tee
 from sensor_msgs.msg import JointState
+from waits import wait_until
 
 from sim_bridge.objects import make_object
 from w2e_ros.bringup import Stack
@@ -86,10 +88,8 @@ def test_explore_runs_real_trials_and_fine_tunes_the_model(stack):
         assert np.isfinite(st.loss) and st.loss > 0
     # the simulator's objects: the bridge's joint states cover both loaded doors, and any
     # part motion reported by a step is the motion the bridge's state shows
-    end = time.monotonic() + 10
-    while not joints and time.monotonic() < end:
-        time.sleep(0.1)
-    assert joints and len(joints[-1].name) == sum(
+    wait_until(lambda: joints, 60.0, "the bridge's object_joint_states")
+    assert len(joints[-1].name) == sum(
         len(make_object(CATEGORY, i).joint_names) for i in EXPLORE_INSTANCES)
     assert n_joints and all(n >= 1 for n in n_joints)
     # the model changed: a checkpoint written after every update, weights differ
@@ -114,6 +114,7 @@ def test_manipulate_executes_the_best_action_on_unseen_instances(stack):
         t0 = time.perf_counter()
         res = client.manipulate(CATEGORY, instances=[inst], primitive="push",
                                  timeout=120.0)  # a trial takes seconds: not the 600 s default
+        answered_ns = client.node.get_clock().now().nanoseconds
         print(f"\n[stack] manipulate {CATEGORY}/{inst}: {time.perf_counter() - t0:.1f} s: "
               f"{res.message}; motion {[round(o.motion, 4) for o in res.outcomes]}")
         assert len(res.outcomes) == 1, res.message
@@ -121,15 +122,17 @@ def test_manipulate_executes_the_best_action_on_unseen_instances(stack):
         assert o.action.primitive == "push" and 0.0 <= o.predicted_affordance <= 1.0
         assert o.valid or o.reason  # the simulator says why a trial does not count
         # the trial ran in the simulator: the bridge's joint states of the object changed,
-        # from the first message after loading to one after the trial, by the joint motion
+        # from the first message after loading to one published after the answer (the bridge
+        # stamps them with the same system clock), by the joint motion
         oid = o.action.object_id
-        end = time.monotonic() + 5.0
-        while time.monotonic() < end:
+
+        def of_object(oid=oid, answered_ns=answered_ns) -> list[JointState]:
             seen = [m for m in list(joints) if any(n.startswith(f"{oid}/") for n in m.name)]
-            if len(seen) >= 2 and time.monotonic() > end - 3.5:  # >= 1 message after the trial
-                break
-            time.sleep(0.1)
-        assert len(seen) >= 2, f"no joint states of object {oid}"
+            late = seen and Time.from_msg(seen[-1].header.stamp).nanoseconds > answered_ns
+            return seen if late else []
+
+        seen = wait_until(of_object, 60.0, f"joint states of object {oid} after its trial")
+        assert len(seen) >= 2, f"one message of object {oid}: {seen}"
         change = np.subtract(seen[-1].position, seen[0].position)
         np.testing.assert_allclose(change, o.joint_motion, atol=1e-3)
         moved = max(moved, float(np.max(np.abs(change))))
@@ -151,8 +154,8 @@ def test_bad_requests_and_a_dead_executor_give_errors_not_hangs(stack):
     executor = next(p for p in s.procs if p.spec.name == "executor")
     executor.popen.terminate()
     executor.popen.wait(timeout=20)
-    t0 = time.perf_counter()
+    # the planner's own error (its 30 s execute timeout or the service gone), not the
+    # client's 120 s "no answer" (a StackCallError)
     r = client.explore(CATEGORY, instances=[30], primitive="pull", budget=1, timeout=120.0)
     assert not r.success and "execute_interaction" in r.message, r.message
-    assert time.perf_counter() - t0 < 90
     assert s.alive()["planner"] and s.alive()["inference"]
