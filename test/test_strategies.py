@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from w2e_ros.core.selection import allocate
+from w2e_ros.core.selection import allocate, success_weights
 from w2e_ros.core.strategies import STRATEGIES, Scored, get_strategy
 
 
@@ -171,7 +171,8 @@ def test_every_old_rule_gives_the_picks_it_gave_before_the_set_interface():
 
 # --- the set rules ---------------------------------------------------------------------------
 
-SET_RULES = ["coverage_success", "typiclust", "probcover", "similarity_coverage", "balanced"]
+SET_RULES = ["coverage_success", "coverage_success_sharp", "typiclust", "probcover",
+             "similarity_coverage", "balanced"]
 N_CLUSTERS, PER_CLUSTER, FEAT_DIM = 8, 60, 16
 
 
@@ -225,7 +226,8 @@ def test_set_rules_are_deterministic_per_seed(name):
         assert any(o != a for o in others)
 
 
-@pytest.mark.parametrize("name", ["coverage_success", "typiclust", "probcover"])
+@pytest.mark.parametrize("name", ["coverage_success", "coverage_success_sharp", "typiclust",
+                                  "probcover"])
 def test_coverage_rules_spread_a_round_over_the_feature_clusters(name):
     """k = clusters: one pick in every blob (random hits all 8 blobs with 8 picks in only
     8!/8^8 = 0.24 % of rounds)."""
@@ -257,7 +259,8 @@ def test_typiclust_takes_a_dense_point_not_an_outlier():
     assert c != 50
 
 
-@pytest.mark.parametrize("name", ["coverage_success", "similarity_coverage", "balanced"])
+@pytest.mark.parametrize("name", ["coverage_success", "coverage_success_sharp",
+                                  "similarity_coverage", "balanced"])
 def test_success_seeking_rules_pick_more_likely_successes_than_random(name):
     """Affordance skewed low (most candidates look like failures, as on pulls): over rounds
     the rule's picks are predicted successes (> 0.5) far more often than random's."""
@@ -308,7 +311,8 @@ def test_balanced_takes_half_predicted_successes_half_near_the_boundary():
 
 def test_feature_rules_say_they_need_features_and_are_offline_only():
     scored = [Scored(np.array([0.2, 0.7]), np.array([0.5, 0.5]))]
-    for name in ["coverage_success", "typiclust", "probcover", "similarity_coverage"]:
+    for name in ["coverage_success", "coverage_success_sharp", "typiclust", "probcover",
+                 "similarity_coverage"]:
         rule = get_strategy(name)
         assert rule.needs_features and rule.offline_only
         with pytest.raises(ValueError, match="features"):
@@ -317,3 +321,15 @@ def test_feature_rules_say_they_need_features_and_are_offline_only():
     assert not get_strategy("similarity").offline_only and get_strategy("oracle").offline_only
     with pytest.raises(ValueError, match="sets"):
         get_strategy("typiclust").keys(scored[0], np.random.default_rng(0))
+
+
+def test_the_sharp_draw_reaches_its_target_where_the_plain_one_stays_flat():
+    """Affordances averaging ~0.45 (the shipped model's on pulls): weighting by affordance
+    already gives a draw 0.4 expected success, so only the 0.7 target sharpens it."""
+    a = np.random.default_rng(0).beta(2.0, 2.5, 5000)
+
+    def expected(target: float) -> float:
+        w = success_weights(a, target)
+        return float((w * a).sum() / w.sum())
+
+    assert expected(0.4) < 0.6 <= 0.7 <= expected(0.7)

@@ -30,7 +30,8 @@ training contacts; measured on cfw pull: both tie random);
 gets most wrong (the most any selection rule can win); ``none`` does not explore.
 
 Set rules on the encoder features (issue 40, the low-budget anchors): ``coverage_success``
-(k-means into the round's budget, a success-weighted draw per cluster), ``typiclust`` and
+(k-means into the round's budget, a success-weighted draw per cluster;
+``coverage_success_sharp`` sharpens the draw towards the likeliest successes), ``typiclust`` and
 ``probcover``, ``similarity_coverage`` (the similarity allocates the round over objects,
 coverage picks inside one) and ``balanced`` (half predicted successes, half near the
 boundary; needs no features). The stack's inference node returns no features yet, so the
@@ -41,6 +42,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
@@ -233,6 +235,9 @@ STRATEGIES: dict[str, Strategy] = {
     "oracle": Strategy("oracle", _KEYED(_oracle), needs_labels=True),
     "coverage_success": Strategy("coverage_success", sel.coverage_success,
                                  needs_features=True),
+    "coverage_success_sharp": Strategy(
+        "coverage_success_sharp",
+        partial(sel.coverage_success, target=sel.SHARP_SUCCESS_TARGET), needs_features=True),
     "typiclust": Strategy("typiclust", sel.typiclust, needs_features=True),
     "probcover": Strategy("probcover", sel.probcover, needs_features=True),
     "similarity_coverage": Strategy("similarity_coverage", sel.similarity_coverage,
