@@ -10,7 +10,7 @@ ranks candidates one by one is the special case :func:`key_rule` builds, with th
 as the per-candidate keys the loop used before (the old benchmark results stay
 reproducible). The registry that names the rules is :mod:`w2e_ros.core.strategies`.
 
-The coverage rules follow the low-budget active-learning anchors (DESIGN.md section 11):
+The coverage rules follow the low-budget active-learning anchors (issue 40, bench/RESEARCH.md):
 TypiClust (arXiv 2202.02794), ProbCover (arXiv 2205.11320), success-seeking draws as in
 Where2Act's online sampling, and label-balanced picks as in BASE (arXiv 2111.12880).
 """
