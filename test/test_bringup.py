@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 
 import pytest
+from waits import wait_until
 
 from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, ros_env, stop_process
 
@@ -73,10 +74,8 @@ def test_w2e_bringup_starts_the_chosen_nodes_in_a_namespace_on_a_domain(tmp_path
         rclpy.init(context=ctx, domain_id=domain)
         probe = Node("test_bringup_probe", context=ctx, start_parameter_services=False)
         want = "/w2e/execute_interaction/_action/send_goal"
-        deadline = time.monotonic() + 20
-        while want not in {n for n, _ in probe.get_service_names_and_types()}:
-            assert time.monotonic() < deadline, f"{want} not on domain {domain}"
-            time.sleep(0.2)
+        wait_until(lambda: want in {n for n, _ in probe.get_service_names_and_types()}, 60.0,
+                   f"{want} on domain {domain}", poll=0.2)
         probe.destroy_node()
         assert (tmp_path / "log").is_dir()
         proc.send_signal(signal.SIGINT)  # Ctrl-C
@@ -123,7 +122,9 @@ def test_w2e_bringup_respawn_restarts_a_dead_node_up_to_the_limit(tmp_path):
         wait_for(lambda: len(pids) == 2, 30)
         assert "[bringup] node executor died (SIGKILL); restart 1 of 1 in 0.2 s" in lines
         assert pids[1] != pids[0]
-        time.sleep(2.0)  # let it start, then it dies once too often
+        # let it start (its settings logged a second time), then it dies once too often
+        wait_for(lambda: sum(x.startswith("[executor]") and "settings:" in x
+                             for x in lines) == 2, 90)
         os.kill(pids[1], signal.SIGKILL)
         assert proc.wait(30) == 1, "\n".join(lines)
     finally:
@@ -155,12 +156,9 @@ def test_nodes_of_a_stack_whose_owner_is_killed_do_not_outlive_it(tmp_path):
             os.kill(pid, 0)  # running
         owner.kill()  # SIGKILL: no handler, no cleanup in the owner
         owner.wait(10)
-        deadline = time.monotonic() + 15
-        alive = pids
-        while alive and time.monotonic() < deadline:
-            alive = [p for p in pids if _running(p)]
-            time.sleep(0.2)
-        assert not alive, f"nodes {alive} outlived their stack's owner"
+        wait_until(lambda: not any(_running(p) for p in pids), 60.0,
+                   "the nodes to die with their stack's owner", poll=0.2,
+                   detail=lambda: f"still running: {[p for p in pids if _running(p)]}")
     finally:
         stop_process(owner, group=False)
 
@@ -218,14 +216,14 @@ def test_robot_panda_brings_up_the_arm_adapter_live_on_the_bridges_base(tmp_path
 
 def test_robot_panda_without_what_it_needs_fails_at_once_naming_it(tmp_path):
     """The bring-up that hung 120 s ("nodes ['sim_bridge'] were not up") now says at once what
-    the configuration lacks, as a user running ``w2e bringup`` sees it."""
-    t0 = time.monotonic()
+    the configuration lacks, as a user running ``w2e bringup`` sees it: the check's message,
+    not the wait for nodes that cannot come up ("were not up after")."""
     params = _panda_params(tmp_path, None, "joints", bridge_base=PANDA_BASE)
     res = subprocess.run([W2E, "bringup", "--params", str(params),
                           "--domain-id", str(pick_domain_id())], env=ros_env(),
-                         capture_output=True, text=True, timeout=60)
+                         capture_output=True, text=True, timeout=100)
     assert res.returncode == 1, res.stdout + res.stderr
-    assert time.monotonic() - t0 < 30
+    assert "were not up" not in res.stderr
     assert "Traceback" not in res.stderr
     assert "sim_bridge robot: panda needs one arm_base_pose" in res.stderr, res.stderr
     assert f"sim_bridge {PANDA_BASE}, arm_adapter [0.95, 0.0, 0.0" in res.stderr, res.stderr
