@@ -12,6 +12,7 @@ no farther; or it runs no controller at all.
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 import threading
@@ -27,6 +28,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
 from w2e_msgs.action import FollowWaypoints
+from waits import result_of, wait_until
 
 from w2e_ros.core import kinematics as kin
 from w2e_ros.core.primitives import Action
@@ -118,13 +120,11 @@ class Robot:
 
     def follow(self, action: Action, timeout: float = 60.0) -> FollowWaypoints.Result:
         sent = self.client.send_goal_async(goal_of(action))
-        deadline = time.monotonic() + timeout
-        while not sent.done() and time.monotonic() < deadline:
-            time.sleep(0.02)
+        end = time.monotonic() + timeout
+        wait_until(sent.done, timeout, "the goal's acceptance", detail=self.output)
         res = sent.result().get_result_async()
-        while not res.done() and time.monotonic() < deadline:
-            time.sleep(0.02)
-        assert res.done(), self.output()
+        wait_until(res.done, max(end - time.monotonic(), 0.0), "the goal's result",
+                   detail=self.output)
         return res.result().result
 
     def output(self) -> str:
@@ -165,8 +165,8 @@ def test_live_mode_sends_the_panda_trajectory_in_pieces_and_refuses_the_unreacha
         # every step after the free move is small: the arm follows the straight line
         q = np.concatenate(pieces)
         assert np.abs(np.diff(q[1:], axis=0)).max() <= kin.DEFAULT_PLAN.max_joint_step
-        time.sleep(0.3)
-        assert robot.planned and len(robot.paths[-1].poses) == len(robot.planned[-1].points)
+        wait_until(lambda: robot.planned and robot.paths, 30.0, "the latched plan and path")
+        assert len(robot.paths[-1].poses) == len(robot.planned[-1].points)
 
         n = len(robot.commanded)
         res = robot.follow(FAR)
@@ -186,7 +186,7 @@ def test_an_arm_blocked_after_the_grasp_is_a_failed_trial_and_holds_where_it_sto
                   "cartesian_speed:=0.5", f"settle_s:={settle_s}", block_piece=1)
     try:
         res = robot.follow(REACHABLE, timeout=2 * settle_s + 30)
-        since_block = time.monotonic() - robot.blocked_at
+        since_block = time.monotonic() - robot.blocked_at  # printed, not asserted
         print(f"\n[arm_adapter] answered {since_block:.1f} s after the block: {res.message}")
         assert res.valid and not res.reached, (res.message, robot.output())
         assert res.message.startswith("blocked after waypoint ")
@@ -196,9 +196,9 @@ def test_an_arm_blocked_after_the_grasp_is_a_failed_trial_and_holds_where_it_sto
         hold = robot.commanded[-1]
         assert len(hold.points) == 1
         np.testing.assert_allclose(hold.points[0].positions, robot.q, atol=1e-9)
-        # seen when the arm stopped (STALL_S of no motion), not settle_s after the plan's end:
-        # the clock starts at the block, and half of settle_s leaves a loaded machine room
-        assert since_block < settle_s / 2
+        # seen when the arm stopped (STALL_S of no motion: "the arm stopped" above), not
+        # settle_s after the plan's end ("was still short of the plan 60.0 s after its end")
+        assert "after its end" not in res.message
     finally:
         robot.close()
 
@@ -220,9 +220,7 @@ def test_dry_run_only_publishes_the_plan(tmp_path):
     try:
         res = robot.follow(REACHABLE)
         assert not res.valid and res.message.startswith("dry run"), res.message
-        deadline = time.monotonic() + 5.0
-        while not (robot.planned and robot.paths) and time.monotonic() < deadline:
-            time.sleep(0.05)
+        wait_until(lambda: robot.planned and robot.paths, 30.0, "the latched plan and path")
         q = check_trajectory(robot.planned[-1])
         np.testing.assert_allclose(q[0], kin.Q_READY, atol=1e-9)  # from the reported state
         path = robot.paths[-1]
@@ -267,13 +265,8 @@ def test_executor_judging_by_joints_refuses_a_robot_side_without_object_joints()
                      np.array([0.0, 0.0, 1.0]), "pull")
         sent = client.send_goal_async(ExecuteInteraction.Goal(
             interaction=action_to_interaction(act, 1)))
-        deadline = time.monotonic() + 30.0
-        while not sent.done() and time.monotonic() < deadline:
-            time.sleep(0.05)
-        result = sent.result().get_result_async()
-        while not result.done() and time.monotonic() < deadline:
-            time.sleep(0.05)
-        outcome = result.result().result.outcome
+        result = result_of(sent, 60.0, "the goal's acceptance").get_result_async()
+        outcome = result_of(result, 120.0, "the executor's outcome").result.outcome
         assert followed, "the robot side never got the trajectory"
         assert not outcome.valid and not outcome.success
         assert "outcome_source: clouds" in outcome.reason
@@ -298,10 +291,12 @@ def test_without_an_arm_the_first_goal_waits_out_start_up_then_goals_fail_fast(t
         first = time.monotonic() - robot.started
         assert not res.valid and "where is the arm?" in res.message, res.message
         assert first >= STARTUP_GRACE_S - 1.0, first  # the adapter started after robot.started
-        t = time.monotonic()
         res = robot.follow(REACHABLE)
-        assert "where is the arm?" in res.message and "within 0.5 s" in res.message, res.message
-        assert time.monotonic() - t < 5.0
+        assert "where is the arm?" in res.message, res.message
+        # after joint_state_timeout_s, not the start-up grace again (the wait as the message
+        # gives it: a loaded machine may stretch the 0.5 s, not to the grace's 10 s)
+        waited = float(re.search(r"within ([\d.]+) s", res.message)[1])
+        assert 0.5 <= waited < STARTUP_GRACE_S, res.message
         assert not robot.commanded  # nothing was sent to a controller
     finally:
         robot.close()
