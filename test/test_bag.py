@@ -9,12 +9,14 @@ import time
 import numpy as np
 import pytest
 import rclpy
+from mcap.reader import make_reader
 from mcap_ros2.reader import read_ros2_messages
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import PointCloud2
 from w2e_msgs.msg import SegmentedObject, SegmentedObjects
+from waits import wait_until
 
 from w2e_ros.ros.bag import BagRecorder, bag_info, message_definition, replay
 from w2e_ros.ros.pointcloud import arrays_to_cloud, cloud_to_arrays
@@ -51,13 +53,6 @@ class _Graph:
         rclpy.try_shutdown(context=self.ctx)
 
 
-def _wait(pred, timeout: float, what: str) -> None:
-    end = time.monotonic() + timeout
-    while not pred():
-        assert time.monotonic() < end, f"timed out waiting for {what}"
-        time.sleep(0.02)
-
-
 def test_definitions_embed_every_nested_type():
     text = message_definition("w2e_msgs/msg/SegmentedObjects")
     for dep in ("std_msgs/Header", "w2e_msgs/SegmentedObject", "sensor_msgs/PointCloud2",
@@ -80,11 +75,11 @@ def test_record_then_replay_gives_the_same_messages_and_is_readable_without_the_
         rec_node = g.node("recorder")
         path = tmp_path / "session.mcap"
         rec = BagRecorder(rec_node, path, ["camera/points", "objects"])
-        _wait(lambda: cloud_pub.get_subscription_count() > 0, 10, "the recorder")
-        for c in clouds:
+        wait_until(lambda: cloud_pub.get_subscription_count() > 0, 30, "the recorder")
+        for c in clouds:  # 0.1 s apart: a spacing for the replay to keep
             cloud_pub.publish(c)
             time.sleep(0.1)
-        _wait(lambda: rec.counts["/camera/points"] == 3 and rec.counts["/objects"] == 1, 10,
+        wait_until(lambda: rec.counts["/camera/points"] == 3 and rec.counts["/objects"] == 1, 30,
               "recorded messages")
         counts = rec.close()
         assert counts == {"/camera/points": 3, "/objects": 1}
@@ -101,12 +96,17 @@ def test_record_then_replay_gives_the_same_messages_and_is_readable_without_the_
         sink = g.node("sink")
         sink.create_subscription(PointCloud2, "replayed/points", got.append, SENSOR_QOS,
                                  raw=True)
+        with open(path, "rb") as f:  # when the recorder got them (a loaded machine's spacing)
+            logged = [m.log_time for _s, ch, m in make_reader(f).iter_messages()
+                      if ch.topic == "/camera/points"]
+        span_s = (max(logged) - min(logged)) * 1e-9
+        assert span_s > 0
         t0 = time.monotonic()
         n = replay(g.node("player"), path, rate=1.0, topics=["camera/points"],
                    remap={"/camera/points": "/replayed/points"})
         assert n == {"/camera/points": 3}
-        assert time.monotonic() - t0 >= 0.15  # the recorded 0.1 s spacing was kept
-        _wait(lambda: len(got) == 3, 10, "replayed clouds")
+        assert time.monotonic() - t0 >= span_s  # the recorded spacing was kept
+        wait_until(lambda: len(got) == 3, 30, "replayed clouds")
         assert [deserialize_message(b, PointCloud2) for b in got] == clouds
     finally:
         g.close()
@@ -124,7 +124,7 @@ def test_recorded_bridge_clouds_replayed_into_segmentation_give_objects(tmp_path
         node = g.node("test")
         with Stack(nodes=["sim_bridge"], env=env, ready_timeout=90.0, output=None):
             rec = BagRecorder(node, path, ["camera/points"])
-            _wait(lambda: rec.counts["/camera/points"] >= 3, 30, "3 camera clouds")
+            wait_until(lambda: rec.counts["/camera/points"] >= 3, 30, "3 camera clouds")
             rec.close()
         info = bag_info(path)
         assert info.counts["/camera/points"] >= 3
@@ -136,7 +136,7 @@ def test_recorded_bridge_clouds_replayed_into_segmentation_give_objects(tmp_path
         objects: list[SegmentedObjects] = []
         node.create_subscription(SegmentedObjects, "objects", objects.append, LATCHED_QOS)
         with Stack(nodes=["segmentation"], env=env, ready_timeout=90.0, output=None):
-            _wait(lambda: node.count_subscribers("camera/points") > 0, 30, "segmentation")
+            wait_until(lambda: node.count_subscribers("camera/points") > 0, 30, "segmentation")
             # camera clouds are best effort (~1 MB each): under load one may be dropped, as
             # from the live camera; replay the recording in a loop like a stream until seen
             player, end = g.node("player"), time.monotonic() + 60

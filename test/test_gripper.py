@@ -29,6 +29,7 @@ from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from w2e_msgs.action import FollowWaypoints
+from waits import wait_until
 
 from w2e_ros.core import kinematics as kin
 from w2e_ros.ros.conversions import to_pose
@@ -72,10 +73,7 @@ class Cell:
         self.wait(lambda: self.states, 120.0, "the simulated arm's joint_states")
 
     def wait(self, pred, timeout: float, what: str) -> None:
-        end = time.monotonic() + timeout
-        while not pred():
-            assert time.monotonic() < end, f"timed out waiting for {what}\n{self.output()}"
-            time.sleep(0.05)
+        wait_until(pred, timeout, what, poll=0.05, detail=self.output)
 
     def output(self) -> str:
         return self.log.read_text()[-3000:]
@@ -121,14 +119,15 @@ def test_bridge_serves_the_franka_gripper_actions_from_the_simulation(cell):
     assert done.status == GoalStatus.STATUS_SUCCEEDED
     assert r.reached_goal and not r.stalled
     assert r.position == pytest.approx(0.02, abs=0.001) and 0.0 <= r.effort <= 30.0
-    cell.wait(lambda: np.abs(cell.fingers() - 0.02).max() < 0.001, 5.0, "fingers at 2 cm")
+    cell.wait(lambda: np.abs(cell.fingers() - 0.02).max() < 0.001, 30.0, "fingers at 2 cm")
 
     # franka Move opens to a width (both fingers), at its speed
     t0 = time.monotonic()
     done = cell.call(Move, "franka_gripper/move", Move.Goal(width=0.08, speed=0.05))
     assert done.result.success and done.result.error == "", done.result.error
-    assert time.monotonic() - t0 > 0.7  # 4 cm of width at 5 cm/s
-    cell.wait(lambda: cell.fingers().min() > 0.039, 5.0, "the hand open")
+    assert time.monotonic() - t0 > 0.7  # 4 cm of width at 5 cm/s: the simulation never runs
+    # ahead of real time, so this lower bound holds on any machine
+    cell.wait(lambda: cell.fingers().min() > 0.039, 30.0, "the hand open")
 
     # a grasp of a 3 cm part with nothing between the fingers: they close to 0, outside
     # epsilon, and franka's rule says the grasp failed (aborted, with the reason)
