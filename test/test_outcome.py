@@ -4,12 +4,12 @@
 from __future__ import annotations
 
 import threading
-import time
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
+from waits import result_of
 
 from sim_bridge.objects import make_object
 from sim_bridge.world import ObjectWorld
@@ -234,10 +234,10 @@ class _Nodes:
         moved = replace(action, point=np.asarray(action.point) + self.offset)
         client = ActionClient(self.client, ExecuteInteraction, "execute_interaction")
         assert client.wait_for_server(timeout_sec=10.0)
-        handle = _wait(client.send_goal_async(ExecuteInteraction.Goal(
-            interaction=action_to_interaction(moved, object_id))), 10.0)
+        handle = result_of(client.send_goal_async(ExecuteInteraction.Goal(
+            interaction=action_to_interaction(moved, object_id))), 30.0, "the goal's acceptance")
         assert handle.accepted
-        return _wait(handle.get_result_async(), timeout).result.outcome
+        return result_of(handle.get_result_async(), timeout, "the outcome").result.outcome
 
     def close(self) -> None:
         import rclpy
@@ -252,16 +252,8 @@ class _Nodes:
         rclpy.try_shutdown(context=self.ctx)
 
 
-def _wait(future, timeout: float):
-    done = threading.Event()
-    future.add_done_callback(lambda _f: done.set())
-    assert done.wait(timeout), "timed out"
-    return future.result()
-
-
 @pytest.mark.slow
 def test_executor_outcome_source_switches_what_success_is_judged_from(drawer):
-    t0 = time.monotonic()
     push_top = Action(drawer.body_top, np.array([0.0, 0.0, -1.0]), np.array([1.0, 0.0, 0.0]),
                       "push")
     # joints (the default): a push on the fixed body fails for the joint rule's reason
@@ -297,7 +289,6 @@ def test_executor_outcome_source_switches_what_success_is_judged_from(drawer):
         assert out.contact_displacement.x > 0.01  # the clouds' estimate: out of the cabinet
     finally:
         nodes.close()
-    assert time.monotonic() - t0 < 60.0
 
 
 def test_docs_outcome_table_is_the_committed_result():
