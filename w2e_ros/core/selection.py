@@ -281,10 +281,8 @@ def typicality(x: np.ndarray, rng: np.random.Generator,
     d = np.sqrt(sq_distances(x, x[ref]))
     self_hit = ref[None, :] == np.arange(n)[:, None]
     d[self_hit] = np.inf  # a row is not its own neighbour
-    m = min(neighbours, len(ref) - (1 if n <= reference else 0))
-    m = max(m, 1)
+    m = max(1, min(neighbours, len(ref) - 1))  # a row in the reference loses one
     near = np.partition(d, m - 1, axis=1)[:, :m]
-    near = np.where(np.isfinite(near), near, 0.0)
     return 1.0 / (near.mean(1) + EPS)
 
 
