@@ -76,7 +76,7 @@ from w2e_ros.ros.explore_service import (  # noqa: F401 - RosModel, RosWorld: th
 )
 from w2e_ros.ros.futures import StackError, wait_future
 from w2e_ros.ros.params import declare_typed_parameters, describe, param, setting_param
-from w2e_ros.ros.peers import PeerWatch, announce, started_ns
+from w2e_ros.ros.peers import PeerWatch, announce
 from w2e_ros.ros.qos import LATCHED_QOS, RELIABLE_QOS
 from w2e_ros.ros.spin import run_node
 from w2e_ros.ros.state import scoped_dir, state_scope
@@ -226,13 +226,7 @@ class PlannerNode(Node):
         """Why ``name``'s pinned server cannot answer any more (died, restarted), or None."""
         def check() -> str | None:
             if self.pinned.get(name) is None:  # not announced when pinned: the first one seen
-                first = self.peers[name].current()
-                if first is not None and started_ns(first) > self.pinned_at:
-                    # started after the call began: the one the call began with is gone (seen
-                    # when a planner that had just started lost the bridge in its first call)
-                    return (f"{PEERS[name]} restarted during the call (a new process serves "
-                            f"{name}; what the old one held in memory is lost)")
-                self.pinned[name] = first
+                self.pinned[name] = self.peers[name].current()
             return self.peers[name].check(self.pinned[name], self.pinned_at)
         return check
 
