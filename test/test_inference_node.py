@@ -7,7 +7,6 @@ yet); the node is pointed at it through its parameters, as the stack YAML would.
 from __future__ import annotations
 
 import threading
-import time
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +20,7 @@ from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 from w2e_msgs.msg import InteractionOutcome
 from w2e_msgs.srv import PredictMaps, UpdateModel
+from waits import result_of, wait_until
 
 from w2e_ros.core.config import ModelConfig
 from w2e_ros.core.model import W2EModel, load_model, save_model
@@ -81,14 +81,14 @@ class _Graph:
         assert self.predict.wait_for_service(timeout_sec=10.0)
 
     def call(self, cli, req, timeout: float = 60.0):
-        fut = cli.call_async(req)
-        t0 = time.monotonic()
-        while not fut.done():
-            assert time.monotonic() - t0 < timeout, "service call timed out"
-            time.sleep(0.005)
-        return fut.result()
+        return result_of(cli.call_async(req), timeout, f"{cli.srv_name} to answer", poll=0.005)
 
     def close(self) -> None:
+        # no replay encoding outlives its test: a daemon thread still in torch when the
+        # process exits aborts it ("terminate called without an active exception"; the
+        # shipped pull pack's was, after a test that waited for the push one only)
+        for served in self.node.served.values():
+            served.replay_ready.wait(300.0)
         self.exe.shutdown()
         self.node.destroy_node()
         self.client.destroy_node()
@@ -252,9 +252,7 @@ def test_heatmap_clouds_are_latched_with_rgb_and_raw_fields(graph):
     for topic in ("affordance_map", "similarity_map"):
         graph.client.create_subscription(PointCloud2, topic,
                                          lambda m, t=topic: got.__setitem__(t, m), LATCHED_QOS)
-    t0 = time.monotonic()
-    while len(got) < 2 and time.monotonic() - t0 < 10:
-        time.sleep(0.02)
+    wait_until(lambda: len(got) == 2, 60.0, "the latched heatmap clouds")
     assert set(got) == {"affordance_map", "similarity_map"}
     arr = cloud_to_arrays(got["affordance_map"])
     assert {"affordance", "similarity", "object_id", "rgb"} <= set(arr.fields)
@@ -454,26 +452,31 @@ def test_services_answer_while_the_replay_is_encoded_and_updates_wait_for_it(
         Parameter("replay_data", value=str(tmp_path / "pack")),
         Parameter("finetune_steps", value=2), Parameter("threads", value=1)])), daemon=True)
     t.start()
-    t.join(30.0)
+    t.join(120.0)
     try:
         assert built, "the node did not come up while its replay was being encoded"
         g = built[0]
         served = g.node.served["pull"]
-        assert attaching.wait(10.0) and not served.replay_ready.is_set()
+        assert attaching.wait(60.0) and not served.replay_ready.is_set()
+        waiting = threading.Event()  # the update's handler is waiting for the replay
+        ready_wait = served.replay_ready.wait
+
+        def watched_wait(timeout=None):
+            waiting.set()
+            return ready_wait(timeout)
+
+        monkeypatch.setattr(served.replay_ready, "wait", watched_wait)
         msg = cloud_msg(seed=4)
         res = g.call(g.predict, predict_request([msg], num_best=2))
         assert res.success, res.message
         update = g.update.call_async(UpdateModel.Request(
             cloud=msg, interactions=list(res.maps[0].best_actions[:1]),
             outcomes=[_outcome(True)], category="door", update_affordance=True))
-        time.sleep(1.0)
+        assert waiting.wait(60.0), "the update did not wait for the replay"
         assert not update.done()  # waits for the replay instead of fitting without it
         release.set()
-        t0 = time.monotonic()
-        while not update.done():
-            assert time.monotonic() - t0 < 60.0, "update_model did not answer"
-            time.sleep(0.01)
-        assert update.result().success, update.result().message
+        result = result_of(update, 120.0, "update_model to answer")
+        assert result.success, result.message
         assert len(served.explorer.replay_rows) == 30  # 5 % of 600 pulls
         assert served.explorer.fit_log and served.explorer.num_explored == 1
     finally:
