@@ -32,10 +32,8 @@ def wait_until(pred: Callable[[], T], timeout: float, what: str, *, executor: An
 def result_of(future: Any, timeout: float, what: str, *, executor: Any = None,
               poll: float = 0.02) -> Any:
     """The result of an rclpy future: spun by ``executor`` when given, else completed by an
-    executor that spins in another thread. Polled, not ``add_done_callback``: rclpy runs a
-    done future's callbacks as tasks of its executor, and a test process that left such tasks
-    behind aborted at exit ("terminate called without an active exception", 4 of 6 runs of
-    test_inference_node)."""
+    executor that spins in another thread (the future is polled: rclpy would run a
+    ``add_done_callback`` callback as a task of that executor, which may be shut down)."""
     wait_until(future.done, timeout, what, executor=executor, poll=poll)
     return future.result()
 
