@@ -111,26 +111,28 @@ def test_sigterm_stops_the_workers_too(tmp_path) -> None:
     import signal
     import subprocess
     import sys
-    import time
+
+    from waits import wait_until
 
     proc = subprocess.Popen(
         [sys.executable, "-m", "w2e_ros.cli", "collect", "--out", str(tmp_path / "c"),
-         "--categories", "cabinet", "door", "--observations", "40", "--workers", "2",
+         "--categories", "cabinet", "door", "--observations", "400", "--workers", "2",
          "--obs-per-shard", "2", "--num-points", "512"],
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
-        deadline = time.monotonic() + 60
-        while len(_children(proc.pid)) < 2 and time.monotonic() < deadline:
-            time.sleep(0.2)
+        wait_until(lambda: len(_children(proc.pid)) >= 2, 120.0,
+                   "the collector to start its workers", poll=0.2)
         workers = _children(proc.pid)
-        assert len(workers) >= 2, "the collector never started its workers"
-        while not list((tmp_path / "c").glob("shard-*.npz")) and time.monotonic() < deadline:
-            time.sleep(0.2)  # let the workers get into their trials
+        # the workers are into their trials: a shard is written
+        wait_until(lambda: list((tmp_path / "c").glob("shard-*.npz")), 120.0,
+                   "the first shard", poll=0.2)
         os.kill(proc.pid, signal.SIGTERM)
         proc.wait(timeout=30)
-        time.sleep(0.5)
-        alive = [w for w in workers if _alive(w)]
-        assert not alive, f"workers outlived the collector: {alive}"
+        # the workers end with the collector (they were gone at the first look here); an
+        # orphan would run on for the rest of 400 observations (~0.5 s each: minutes)
+        wait_until(lambda: not any(_alive(w) for w in workers), 20.0,
+                   "the workers to end with the collector", poll=0.1,
+                   detail=lambda: f"alive: {[w for w in workers if _alive(w)]}")
         assert proc.returncode != 0  # it reports the interruption
     finally:
         if proc.poll() is None:
