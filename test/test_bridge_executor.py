@@ -20,6 +20,7 @@ from visualization_msgs.msg import MarkerArray
 from w2e_msgs.action import ExecuteInteraction, FollowWaypoints
 from w2e_msgs.msg import Interaction, SceneObject, SegmentedObjects
 from w2e_msgs.srv import LoadScene
+from waits import result_of, wait_until
 
 from sim_bridge.objects import make_object
 from sim_bridge.world import ObjectWorld
@@ -54,14 +55,10 @@ class _Client:
         self.ex.add_node(self.node)
 
     def wait(self, pred, timeout: float, what: str) -> None:
-        end = time.monotonic() + timeout
-        while not pred():
-            assert time.monotonic() < end, f"timed out waiting for {what}"
-            self.ex.spin_once(timeout_sec=0.05)
+        wait_until(pred, timeout, what, executor=self.ex, poll=0.05)
 
     def result(self, future, timeout: float, what: str):
-        self.wait(future.done, timeout, what)
-        return future.result()
+        return result_of(future, timeout, what, executor=self.ex, poll=0.05)
 
     def close(self) -> None:
         self.ex.shutdown()

@@ -21,6 +21,7 @@ from sensor_msgs.msg import PointCloud2
 from w2e_msgs.action import ExecuteInteraction
 from w2e_msgs.msg import AffordanceMap, Interaction, InteractionOutcome
 from w2e_msgs.srv import PredictMaps
+from waits import wait_until
 
 from w2e_ros.ros.pointcloud import arrays_to_cloud, cloud_to_arrays
 from w2e_ros.ros.processes import (
@@ -160,11 +161,7 @@ def server(tmp_path):
 
 
 def _wait(pred, timeout: float, executor, what: str) -> None:
-    end = time.monotonic() + timeout
-    while not pred():
-        if time.monotonic() > end:
-            raise AssertionError(f"timed out waiting for {what}")
-        executor.spin_once(timeout_sec=0.05)
+    wait_until(pred, timeout, what, executor=executor, poll=0.05)
 
 
 def test_service_action_and_cloud_between_two_processes(server):
@@ -204,7 +201,7 @@ def test_service_action_and_cloud_between_two_processes(server):
         for _ in range(10):
             t0 = time.perf_counter()
             fut = cli.call_async(req)
-            _wait(fut.done, 10.0, ex, "predict_maps")
+            _wait(fut.done, 30.0, ex, "predict_maps")
             rtts.append((time.perf_counter() - t0) * 1e3)
         resp = fut.result()
         assert resp.success and len(resp.maps) == 1 and resp.maps[0].object_id == 7
@@ -217,10 +214,10 @@ def test_service_action_and_cloud_between_two_processes(server):
         goal.interaction.point.x = 0.25
         send = act.send_goal_async(goal, feedback_callback=lambda fb: phases.append(
             fb.feedback.phase))
-        _wait(send.done, 10.0, ex, "goal acceptance")
+        _wait(send.done, 30.0, ex, "goal acceptance")
         assert send.result().accepted
         res_fut = send.result().get_result_async()
-        _wait(res_fut.done, 10.0, ex, "action result")
+        _wait(res_fut.done, 30.0, ex, "action result")
         outcome = res_fut.result().result.outcome
         assert outcome.success and outcome.motion == pytest.approx(0.25)
         assert outcome.moved_part == "echo-pull"

@@ -164,6 +164,7 @@ def test_pull_through_the_stack_with_the_simulated_panda_opens_a_drawer(tmp_path
     from w2e_msgs.action import ExecuteInteraction
     from w2e_msgs.msg import SceneObject, SegmentedObjects
     from w2e_msgs.srv import LoadScene
+    from waits import result_of, wait_until
 
     from w2e_ros.bringup import Stack
     from w2e_ros.ros.conversions import action_to_interaction, from_pose
@@ -201,14 +202,10 @@ def test_pull_through_the_stack_with_the_simulated_panda_opens_a_drawer(tmp_path
             ex.add_node(node)
 
             def wait(pred, timeout: float, what: str) -> None:
-                end = time.monotonic() + timeout
-                while not pred():
-                    assert time.monotonic() < end, f"timed out waiting for {what}"
-                    ex.spin_once(timeout_sec=0.05)
+                wait_until(pred, timeout, what, executor=ex, poll=0.05)
 
             def result(future, timeout: float, what: str):
-                wait(future.done, timeout, what)
-                return future.result()
+                return result_of(future, timeout, what, executor=ex, poll=0.05)
 
             cli = node.create_client(LoadScene, "load_scene")
             wait(cli.service_is_ready, 30.0, "load_scene")
