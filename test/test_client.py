@@ -15,6 +15,7 @@ from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from w2e_msgs.action import Explore as ExploreAction
 from w2e_msgs.msg import ExplorationProgress
+from waits import wait_until
 
 from w2e_ros.client import W2EClient
 from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, shm_files
@@ -33,7 +34,7 @@ class FakePlanner:
         self.node = Node("planner_node", context=self.ctx)
         self.step_s = step_s
         self.busy = threading.Lock()
-        self.late: list = []
+        self.late: list[threading.Timer] = []  # the feedback sent after a result
         self.server = ActionServer(
             self.node, ExploreAction, "explore", execute_callback=self.execute,
             goal_callback=lambda _g: (GoalResponse.REJECT if self.busy.locked()
@@ -53,19 +54,22 @@ class FakePlanner:
                     handle.canceled()
                     return ExploreAction.Result(success=False, message="cancelled",
                                                 interactions_used=k)
-                time.sleep(self.step_s)
+                time.sleep(self.step_s)  # the step's work
                 fb = ExploreAction.Feedback(progress=ExplorationProgress(
                     step=k + 1, budget=handle.request.budget, mean_similarity=0.1 * k))
                 if k + 1 < handle.request.budget:
                     handle.publish_feedback(fb)
                 else:  # the last step's feedback goes out after the result
-                    threading.Timer(0.3, handle.publish_feedback, (fb,)).start()
+                    self.late.append(late := threading.Timer(0.3, handle.publish_feedback,
+                                                             (fb,)))
+                    late.start()
             res.interactions_used = handle.request.budget
             handle.succeed()
             return res
 
     def close(self) -> None:
-        time.sleep(0.5)
+        for late in self.late:  # no feedback left to publish into a node torn down
+            late.join()
         self.exe.shutdown()
         self.node.destroy_node()
         rclpy.try_shutdown(context=self.ctx)
@@ -96,15 +100,12 @@ def test_a_started_explore_is_polled_then_cancelled_and_a_second_goal_is_busy(st
     try:
         task = w2e.start_explore("door", instances=[30], budget=50)
         assert not task.is_done()
-        end = time.monotonic() + 10.0
-        while not task.feedback() and time.monotonic() < end:
-            time.sleep(0.05)
-        assert task.feedback()[0].step == 1
+        assert wait_until(task.feedback, 60.0, "the first step's feedback")[0].step == 1
         other = w2e.start_explore("door", instances=[30], budget=1)
         assert other.is_done() and not other.result().success
         assert "busy" in other.result().message
         assert task.cancel()
-        r = task.result(timeout=10.0)
+        r = task.result(timeout=60.0)
         assert task.is_done() and not r.success and r.message == "cancelled"
         assert 1 <= r.interactions_used < 50
     finally:
