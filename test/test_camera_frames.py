@@ -375,10 +375,10 @@ def test_segmentation_process_segments_a_published_optical_frame_cloud(tmp_path,
     try:
         with Stack(nodes=["segmentation"], env=env, ready_timeout=30.0, output=None,
                    extra_args={"segmentation": args}):
-            msg, end = small.organised_cloud(), time.monotonic() + 20
+            msg, end = small.organised_cloud(), time.monotonic() + 60
             while not objects and time.monotonic() < end:
                 pub.publish(msg)  # best effort, as a camera: repeat until one gets through
-                time.sleep(0.5)
+                time.sleep(0.5)  # a camera at 2 Hz
         assert objects, "no segmented objects from the camera cloud"
         _assert_same_objects(objects[-1], ref)
     finally:
