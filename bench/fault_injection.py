@@ -30,10 +30,7 @@ import tempfile
 import time
 from pathlib import Path
 
-import torch
-
-from w2e_ros.bringup import Stack
-from w2e_ros.core.model import W2EModel, save_model
+from w2e_ros.bringup import Stack, random_model_args
 from w2e_ros.core.session_log import EVENTS, session_dir
 from w2e_ros.ros.processes import pick_domain_id, ros_env
 
@@ -80,18 +77,11 @@ def main() -> int:
     budget = max(1, a.interactions // len(INSTANCES))  # per door
     total = budget * len(INSTANCES)
     tmp = Path(tempfile.mkdtemp(prefix="w2e_faults_"))
-    ckpt = {}
-    for i, prim in enumerate(("push", "pull")):
-        torch.manual_seed(i)
-        ckpt[prim] = save_model(tmp / f"{prim}.pt", W2EModel(), {"method": "w2e",
-                                                                 "combo": "cfw"})
     domain = pick_domain_id()
     env = ros_env(domain_id=domain, log_dir=tmp / "ros_log")
     log_root = tmp / "exploration"
     extra = {
-        "inference": ["-p", f"push_checkpoint:={ckpt['push']}",
-                      "-p", f"pull_checkpoint:={ckpt['pull']}",
-                      "-p", f"adapted_dir:={tmp / 'adapted'}", "-p", "finetune_steps:=2"],
+        "inference": [*random_model_args(tmp), "-p", "finetune_steps:=2"],
         "planner": ["-p", "points_per_object:=64", "-p", f"exploration_log_dir:={log_root}",
                     "-p", "execute_timeout_s:=15.0", "-p", "service_timeout_s:=15.0",
                     "-p", "observe_timeout_s:=40.0", "-p", "connect_timeout_s:=5.0",

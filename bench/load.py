@@ -27,10 +27,8 @@ import time
 from pathlib import Path
 
 import numpy as np
-import torch
 
-from w2e_ros.bringup import Stack
-from w2e_ros.core.model import W2EModel, save_model
+from w2e_ros.bringup import Stack, random_model_args
 from w2e_ros.ros.processes import pick_domain_id, ros_env
 from w2e_ros.ros.transport import measure_delivery, profile_path, with_profile
 
@@ -92,17 +90,10 @@ def main() -> int:
     p.add_argument("--out", default="bench/results/load/summary.json")
     a = p.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="w2e_load_"))
-    ckpt = {}
-    for i, prim in enumerate(("push", "pull")):
-        torch.manual_seed(i)
-        ckpt[prim] = save_model(tmp / f"{prim}.pt", W2EModel(), {"method": "w2e",
-                                                                 "combo": "cfw"})
     budget = max(1, a.interactions // len(INSTANCES))
     env = ros_env(domain_id=pick_domain_id(), log_dir=tmp / "ros_log")
     extra = {
-        "inference": ["-p", f"push_checkpoint:={ckpt['push']}",
-                      "-p", f"pull_checkpoint:={ckpt['pull']}",
-                      "-p", f"adapted_dir:={tmp / 'adapted'}", "-p", "finetune_steps:=2"],
+        "inference": [*random_model_args(tmp), "-p", "finetune_steps:=2"],
         "planner": ["-p", "points_per_object:=64", "-p", f"max_budget:={budget}",
                     "-p", f"exploration_log_dir:={tmp / 'exploration'}"],
     }

@@ -16,7 +16,6 @@ from __future__ import annotations
 import collections
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
@@ -25,6 +24,7 @@ from rclpy.serialization import serialize_message
 from scenes import Tee
 from sensor_msgs.msg import PointCloud2, PointField
 from w2e_msgs.msg import SegmentedObjects
+from waits import wait_until
 
 from w2e_ros.bringup import Stack
 from w2e_ros.nodes.segmentation_node import SegmentationNode
@@ -188,11 +188,10 @@ def test_a_running_segmentation_node_survives_a_flood_of_malformed_clouds(tmp_pa
             pub.stdin.close()
             executor = rclpy.executors.SingleThreadedExecutor(context=ctx)
             executor.add_node(node)
-            end = time.monotonic() + 120
-            while not any(len(m.objects) == 2 for m in got):
-                assert time.monotonic() < end, f"no objects after the flood: {stack.alive()}"
-                assert pub.poll() is None, "the publisher process ended"
-                executor.spin_once(timeout_sec=0.2)
+            wait_until(lambda: any(len(m.objects) == 2 for m in got) or pub.poll() is not None,
+                       120, "objects after the flood", executor=executor, poll=0.2,
+                       detail=lambda: str(stack.alive()))
+            assert pub.poll() is None, "the publisher process ended"
             assert stack.alive() == {"segmentation": True}
         finally:
             pub.kill()

@@ -17,13 +17,11 @@ import signal
 import time
 
 import pytest
-import torch
 from scenes import Tee
 from test_resume import CATEGORY, PRIMITIVE, STATUS, ActionUser
 from waits import wait_until
 
-from w2e_ros.bringup import Stack
-from w2e_ros.core.model import W2EModel, save_model
+from w2e_ros.bringup import Stack, random_model_args
 from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, ros_env
 
 pytestmark = pytest.mark.slow
@@ -32,16 +30,9 @@ clean_shm_at_exit()
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("respawn")
-    ckpt = {}
-    for i, prim in enumerate(("push", "pull")):
-        torch.manual_seed(i)
-        ckpt[prim] = save_model(tmp / f"{prim}.pt", W2EModel(), {"method": "w2e",
-                                                                 "combo": "cfw"})
     env = ros_env(domain_id=pick_domain_id(), log_dir=tmp / "ros_log")
     extra = {
-        "inference": ["-p", f"push_checkpoint:={ckpt['push']}",
-                      "-p", f"pull_checkpoint:={ckpt['pull']}",
-                      "-p", f"adapted_dir:={tmp / 'adapted'}", "-p", "finetune_steps:=2"],
+        "inference": [*random_model_args(tmp), "-p", "finetune_steps:=2"],
         # the default service / execute timeouts (120 s / 60 s): the kill must be seen anyway
         "planner": ["-p", "points_per_object:=64",
                     "-p", f"exploration_log_dir:={tmp / 'exploration'}"],

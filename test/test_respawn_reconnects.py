@@ -23,11 +23,10 @@ import time
 from pathlib import Path
 
 import pytest
-import torch
 from scenes import Tee
+from waits import wait_until
 
-from w2e_ros.bringup import NODES, Stack
-from w2e_ros.core.model import W2EModel, save_model
+from w2e_ros.bringup import NODES, Stack, random_model_args
 from w2e_ros.ros.processes import (
     SHM_DIR,
     clean_shm_at_exit,
@@ -94,26 +93,17 @@ def stale_ports(pids: set[int]) -> dict[int, list[str]]:
 
 
 def _wait_respawned(stack: Stack, name: str, count: int, timeout: float = 120.0) -> None:
-    end = time.monotonic() + timeout
-    while stack.respawns.get(name, 0) < count:
-        assert time.monotonic() < end, f"{name} not respawned ({stack.respawns})"
-        time.sleep(0.1)
-    stack.wait_ready(timeout=max(end - time.monotonic(), 1.0))
+    wait_until(lambda: stack.respawns.get(name, 0) >= count, timeout, f"{name} respawned",
+               detail=lambda: str(stack.respawns))
+    stack.wait_ready(timeout=timeout)
 
 
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("respawn")
-    ckpt = {}
-    for i, prim in enumerate(("push", "pull")):
-        torch.manual_seed(i)
-        ckpt[prim] = save_model(tmp / f"{prim}.pt", W2EModel(), {"method": "w2e",
-                                                                 "combo": "cfw"})
     env = ros_env(domain_id=pick_domain_id(), log_dir=tmp / "ros_log")
     extra = {
-        "inference": ["-p", f"push_checkpoint:={ckpt['push']}",
-                      "-p", f"pull_checkpoint:={ckpt['pull']}",
-                      "-p", f"adapted_dir:={tmp / 'adapted'}"],
+        "inference": [*random_model_args(tmp)],
         "planner": ["-p", "points_per_object:=64", "-p", "manipulate_directions:=4",
                     "-p", "approach_candidates:=16", "-p", "connect_timeout_s:=5.0"],
     }

@@ -24,12 +24,10 @@ import time
 from pathlib import Path
 
 import pytest
-import torch
 from scenes import Tee
 from waits import wait_until
 
-from w2e_ros.bringup import Stack
-from w2e_ros.core.model import W2EModel, save_model
+from w2e_ros.bringup import Stack, random_model_args
 from w2e_ros.core.session_log import EVENTS, session_dir
 from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, ros_env
 
@@ -185,19 +183,12 @@ def _interactions(events: list[dict]) -> list[dict]:
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("resume")
-    ckpt = {}
-    for i, prim in enumerate(("push", "pull")):
-        torch.manual_seed(i)
-        ckpt[prim] = save_model(tmp / f"{prim}.pt", W2EModel(), {"method": "w2e",
-                                                                 "combo": "cfw"})
     domain = pick_domain_id()
     env = ros_env(domain_id=domain, log_dir=tmp / "ros_log")
     out = Tee()
     log_dir = tmp / "exploration"
     extra = {
-        "inference": ["-p", f"push_checkpoint:={ckpt['push']}",
-                      "-p", f"pull_checkpoint:={ckpt['pull']}",
-                      "-p", f"adapted_dir:={tmp / 'adapted'}", "-p", "finetune_steps:=2"],
+        "inference": [*random_model_args(tmp), "-p", "finetune_steps:=2"],
         # a killed server is noticed by its missing answer: short waits keep the test short
         "planner": ["-p", "points_per_object:=64", "-p", f"exploration_log_dir:={log_dir}",
                     "-p", "execute_timeout_s:=15.0", "-p", "service_timeout_s:=15.0",

@@ -131,6 +131,23 @@ def node_parameters(params: Path, node: str, namespace: str = "",
     return out
 
 
+def random_model_args(out_dir: Path) -> list[str]:
+    """The inference node's arguments for seeded random-weight push and pull checkpoints
+    written into ``out_dir``: the stack's plumbing checks (tests, bench/fault_injection.py,
+    bench/load.py) measure messages, not learning."""
+    import torch  # the model's weights: not needed to bring a stack up
+
+    from w2e_ros.core.model import W2EModel, save_model
+
+    args = []
+    for seed, prim in enumerate(("push", "pull")):
+        torch.manual_seed(seed)
+        path = save_model(Path(out_dir) / f"{prim}.pt", W2EModel(),
+                          {"method": "w2e", "combo": "cfw"})
+        args += ["-p", f"{prim}_checkpoint:={path}"]
+    return args + ["-p", f"adapted_dir:={Path(out_dir) / 'adapted'}"]
+
+
 RESPAWN_MAX_DELAY = 10.0  # s: the longest wait before a respawn
 RESPAWN_STABLE_S = 30.0  # s: a node up this long died of something new: no backoff
 
