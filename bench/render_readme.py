@@ -88,6 +88,8 @@ def render(doc: dict, combination: str | None = None, budget: int | None = None)
         for method in methods:
             if method == ref or get(method, cols[0][0], cols[0][1], ref) is None:
                 continue
+            if get(ref, cols[0][0], cols[0][1], method) is not None and method == "none":
+                continue  # one sign convention, rule − baseline: random − none, not none − random
             lines.append(f"| {method} − {ref} (paired) | " + " | ".join(
                 _cell(get(method, m, p, ref), signed=True) for m, p in cols) + " |")
     sc = [r for r in rows if r["combination"] == combo and r["metric"] == "simcorr_auroc"
@@ -106,21 +108,26 @@ def render_combos(doc: dict, budget: int | None = None) -> str:
     budget = budget if budget is not None else max(r["budget"] for r in rows)
     combos = sorted({r["combination"] for r in rows}, key=lambda c: (c == "mean", c))
     cols = [(m, p) for m in ("fscore", "auroc") for p in ("push", "pull")]
-    lines = [f"Paired differences against `random` at budget {budget}, % with 95 % "
+    lines = [f"Paired differences at budget {budget}, rule − baseline: each rule against "
+             "`random`, and `random` against `none` (what exploring at random buys); % with 95 % "
              "intervals (seeds per primitive in brackets after the combination).", "",
-             "| combination | method − random | " + " | ".join(
+             "| combination | difference | " + " | ".join(
                  f"{NAMES[m]} {p}" for m, p in cols) + " |", "|---" * (len(cols) + 2) + "|"]
     for combo in combos:
-        sel = [r for r in rows if r["combination"] == combo and r["budget"] == budget
-               and r.get("vs") == "random"]
+        at = [r for r in rows if r["combination"] == combo and r["budget"] == budget]
+        sel = [r for r in at if r.get("vs") == "random"]
         n = {p: max((r["n_seeds"] for r in sel if r["primitive"] == p), default=0)
              for p in ("push", "pull")}
         label = f"`{combo}` ({n['push']} / {n['pull']})"
+        gain = [r for r in at if r["method"] == "random" and r.get("vs") == "none"]
         for method in _methods(doc, sel):
-            cells = [_cell(next((r for r in sel if r["method"] == method
+            src, name = sel, f"{method} − random"
+            if method == "none" and gain:  # rule − baseline: random − none
+                src, name = gain, "random − none"
+            cells = [_cell(next((r for r in src if (r["method"] == method or src is gain)
                                  and r["metric"] == m and r["primitive"] == p), None), True)
                      for m, p in cols]
-            lines.append(f"| {label} | {method} | " + " | ".join(cells) + " |")
+            lines.append(f"| {label} | {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
