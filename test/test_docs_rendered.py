@@ -156,3 +156,29 @@ def test_bench_results_holds_summaries_not_every_run():
     assert len(files) <= 150, f"bench/results tracks {len(files)} files (at most 150)"
     raw = [p for p in files if p.endswith(".jsonl")]
     assert not raw, f"raw per-trial outputs tracked: {raw}"
+
+
+def test_the_robot_install_carries_the_defaults_and_the_research_is_an_extra(monkeypatch):
+    """``pip install .`` installs the default checkpoints and their replay pack, not the
+    research checkpoints (``checkpoints/fulldata_*``), which no node or config names; the
+    offline experiments' dependencies come with ``.[experiments]``, as the README says."""
+    import runpy
+
+    import setuptools
+
+    captured: dict = {}
+    monkeypatch.setattr(setuptools, "setup", lambda **kw: captured.update(kw))
+    monkeypatch.chdir(ROOT)
+    runpy.run_path(str(ROOT / "setup.py"))
+    files = [f for _, group in captured["data_files"] for f in group]
+    assert {"checkpoints/w2e_cfw_pull.pt", "checkpoints/w2e_cfw_push.pt"} <= set(files)
+    assert any(f.startswith("checkpoints/replay_cfw/") for f in files)
+    assert not [f for f in files if "fulldata" in f]
+    extras = captured["extras_require"]
+    assert any(r.startswith("ray") for r in extras["experiments"])
+    assert set(extras["sim"]) <= set(extras["experiments"])
+    robot = [ROOT / "config", ROOT / "launch", ROOT / "w2e_ros" / "nodes"]
+    named = [p for d in robot for p in d.rglob("*") if p.is_file()
+             and p.suffix in (".py", ".yaml", ".xml") and "fulldata_" in p.read_text()]
+    assert not named, f"the robot stack names a research checkpoint: {named}"
+    assert "pip install .[experiments]" in (ROOT / "README.md").read_text()
