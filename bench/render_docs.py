@@ -373,6 +373,42 @@ def load_test() -> str:
         "", f"Source: `bench/results/load/summary.json` ({r['minutes']:.0f} min)."])
 
 
+# --- the real arm and outcomes from clouds (docs/real_robot.md) ----------------------------
+
+def arm_reach() -> str:
+    r = load("arm_reach/results.json")["summary"]
+    rows = ["| primitive | objects | top-64 candidates reachable | best candidate reachable | "
+            "objects with none of the best 256 reachable |", "|---|---|---|---|---|"]
+    for prim in ("push", "pull"):
+        x = r[prim]
+        rows.append(f"| {prim} | {x['objects']} | {100 * x['top_reachable_share']:.1f} % | "
+                    f"{100 * x['top1_reachable']:.1f} % | {x['none_reachable_in_candidates']} |")
+    return "\n".join(rows)
+
+
+def arm_sim() -> str:
+    r = load("arm_sim/results.json")["summary"]
+    rows = ["| primitive | objects | actions | flying valid / success | Panda valid / success | "
+            "Panda − flying, per object [95 % CI] | agreement |", "|---|---|---|---|---|---|---|"]
+    for prim in ("push", "pull"):
+        x = r[prim]["all"]
+        lo, hi = x["difference_ci95"]
+        rows.append(f"| {prim} | {x['objects']} | {x['actions']} | "
+                    f"{100 * x['flying_valid']:.1f} % / {100 * x['flying_success']:.1f} % | "
+                    f"{100 * x['panda_valid']:.1f} % / "
+                    f"{100 * x['panda_success']:.1f} % | {signed(100 * x['difference'])} "
+                    f"[{signed(100 * lo)}, {signed(100 * hi)}] | {100 * x['agreement']:.1f} % |")
+    return "\n".join(rows)
+
+
+def outcome_agreement() -> str:
+    a = load("outcome/outcome_agreement.json")["groups"]["all"]
+    return (f"Judged from the object's cloud before and after, outcomes agree with the joints on "
+            f"{100 * a['agreement']:.1f} % of {a['n']} valid simulated trials (precision "
+            f"{100 * a['precision']:.1f} %, recall {100 * a['recall']:.1f} %; "
+            "`bench/results/outcome/outcome_agreement.json`).")
+
+
 # --- the registry -------------------------------------------------------------------------
 
 BLOCKS: dict[str, Callable[[], str]] = {
@@ -384,6 +420,9 @@ BLOCKS: dict[str, Callable[[], str]] = {
     "reliability-respawn": respawn,
     "reliability-faults": faults,
     "reliability-load": load_test,
+    "arm-reach": arm_reach,
+    "arm-sim": arm_sim,
+    "outcome-agreement": outcome_agreement,
 }
 KINDS: dict[str, Callable[[str], str]] = {
     "benchmark": benchmark,
