@@ -3,7 +3,7 @@
 On TEST-split objects of every category (unseen by the shipped models), for push and pull,
 with the shipped checkpoints ``checkpoints/w2e_cfw_{push,pull}.pt``, the action each stack
 verb would execute is taken with and without the approach check
-(:mod:`w2e_ros.core.feasibility`) and both are executed in the simulator:
+(:mod:`w2e_ros.core.robot.feasibility`) and both are executed in the simulator:
 
 * manipulate: the planner's choice. Every cloud point x ``--directions`` gripper frames drawn
   as the inference node draws its maps (no mask: a real robot has none), ranked by predicted
@@ -44,16 +44,21 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from w2e_ros.core.categories import load_categories
-from w2e_ros.core.evaluate import evaluation_targets
-from w2e_ros.core.explore import map_candidates as explore_map_candidates
-from w2e_ros.core.explore import sample_candidates
-from w2e_ros.core.feasibility import DEFAULT_CHECK, ApproachCheck, approach_clear, approach_hits
-from w2e_ros.core.metrics import bootstrap_ci
-from w2e_ros.core.model import load_model
-from w2e_ros.core.policy import ManipulatePolicy, best_first, score_actions
-from w2e_ros.core.primitives import Action
-from w2e_ros.core.targets import Target, stable_seed
+from w2e_ros.core.dataset.categories import load_categories
+from w2e_ros.core.dataset.targets import Target, stable_seed
+from w2e_ros.core.exploration.evaluate import evaluation_targets
+from w2e_ros.core.exploration.explore import map_candidates as explore_map_candidates
+from w2e_ros.core.exploration.explore import sample_candidates
+from w2e_ros.core.model.metrics import bootstrap_ci
+from w2e_ros.core.model.network import load_model
+from w2e_ros.core.model.policy import ManipulatePolicy, best_first, score_actions
+from w2e_ros.core.robot.feasibility import (
+    DEFAULT_CHECK,
+    ApproachCheck,
+    approach_clear,
+    approach_hits,
+)
+from w2e_ros.core.robot.primitives import Action
 from w2e_ros.experiments.sim_world import SimWorld
 from w2e_ros.paths import default_checkpoint
 

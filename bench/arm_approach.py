@@ -11,9 +11,9 @@ in its start state) and a Panda stands on the same table as in the stack
 0. Of the ``--candidates`` best:
 
 * the hand-only check (``check_arm`` false, what ``arm: panda`` did before): the hand's
-  approach (:func:`w2e_ros.core.feasibility.approach_hits`) and the reach (IK);
+  approach (:func:`w2e_ros.core.robot.feasibility.approach_hits`) and the reach (IK);
 * the whole-arm check (``check_arm`` true): besides, the links along the joint path the planner
-  sends and the table plane (:func:`w2e_ros.core.feasibility.arm_collisions`), with the part
+  sends and the table plane (:func:`w2e_ros.core.robot.feasibility.arm_collisions`), with the part
   and the waypoint of the first collision.
 
 Executed in the simulator with the Panda (``sim_bridge.panda.run_arm_trial``: the plan the
@@ -40,20 +40,20 @@ import torch
 from approach_check import heads, map_candidates  # a sibling script: the same ranking
 
 from sim_bridge.panda import ArmSettings, base_in_front, run_arm_trial
-from w2e_ros.core.categories import load_categories
-from w2e_ros.core.evaluate import evaluation_targets
-from w2e_ros.core.feasibility import (
+from w2e_ros.core.dataset.categories import load_categories
+from w2e_ros.core.dataset.targets import stable_seed
+from w2e_ros.core.exploration.evaluate import evaluation_targets
+from w2e_ros.core.model.metrics import bootstrap_ci
+from w2e_ros.core.model.network import load_model
+from w2e_ros.core.model.policy import best_first
+from w2e_ros.core.robot.feasibility import (
     DEFAULT_CHECK,
     Arm,
     ArmCheck,
     approach_hits,
     arm_collisions,
 )
-from w2e_ros.core.metrics import bootstrap_ci
-from w2e_ros.core.model import load_model
-from w2e_ros.core.policy import best_first
-from w2e_ros.core.primitives import Action
-from w2e_ros.core.targets import stable_seed
+from w2e_ros.core.robot.primitives import Action
 from w2e_ros.experiments.sim_world import SimWorld
 from w2e_ros.paths import default_checkpoint
 

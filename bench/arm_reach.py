@@ -4,7 +4,7 @@ For TEST instances of every category (the simulator's objects, centred at the or
 towards +x), the shipped model's manipulate candidates (all points x ``--directions`` frames,
 best affordance first, as the inference node's maps draw them) are checked for reach by a
 Panda based at ``--base-pose`` (default: 0.95 m in front of the object, 0.3 m below its
-centre, facing it) with :func:`w2e_ros.core.kinematics.reachable`; the best reachable one is
+centre, facing it) with :func:`w2e_ros.core.robot.kinematics.reachable`; the best reachable one is
 what ``manipulate`` with ``arm: panda`` executes. Timing: :func:`plan_trajectory` of the top
 reachable candidate per object (per IK'd pose along the path) and the batched check per
 candidate.
@@ -22,13 +22,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from w2e_ros.core import kinematics as kin
-from w2e_ros.core.actions import encode_rotation, sample_forward, sample_up
-from w2e_ros.core.categories import load_categories
-from w2e_ros.core.evaluate import evaluation_targets
-from w2e_ros.core.feasibility import Arm, first_feasible
-from w2e_ros.core.model import load_model
-from w2e_ros.core.targets import stable_seed
+from w2e_ros.core.dataset.categories import load_categories
+from w2e_ros.core.dataset.targets import stable_seed
+from w2e_ros.core.exploration.evaluate import evaluation_targets
+from w2e_ros.core.model.network import load_model
+from w2e_ros.core.robot import kinematics as kin
+from w2e_ros.core.robot.actions import encode_rotation, sample_forward, sample_up
+from w2e_ros.core.robot.feasibility import Arm, first_feasible
 from w2e_ros.experiments.sim_world import SimWorld
 from w2e_ros.paths import default_checkpoint
 

@@ -28,11 +28,11 @@ import torch
 from arm_reach import ranked  # a sibling script: the same candidate ranking
 
 from sim_bridge.panda import base_in_front, run_arm_trial
-from w2e_ros.core import kinematics as kin
-from w2e_ros.core.evaluate import evaluation_targets
-from w2e_ros.core.model import load_model
-from w2e_ros.core.primitives import Action
-from w2e_ros.core.targets import stable_seed
+from w2e_ros.core.dataset.targets import stable_seed
+from w2e_ros.core.exploration.evaluate import evaluation_targets
+from w2e_ros.core.model.network import load_model
+from w2e_ros.core.robot import kinematics as kin
+from w2e_ros.core.robot.primitives import Action
 from w2e_ros.experiments.sim_world import SimWorld
 from w2e_ros.paths import default_checkpoint
 

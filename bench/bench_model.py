@@ -9,7 +9,7 @@
 * Training: interactions per second. Ours: a few clouds x many interactions per step (grouped
   by observation). Naive: the reference layout, one cloud per interaction (batch of 32).
 
-The process keeps freed memory (core/allocator.py) as the ``w2e`` verbs and the inference node
+The process keeps freed memory (core/infra/allocator.py) as the ``w2e`` verbs and the inference node
 do; each map is also timed in a child process with glibc's default allocator, the way the map
 ran before (issue 29: 235 ms at 10,000 x 32), and the ratio printed.
 
@@ -31,10 +31,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from w2e_ros.core.allocator import keep_freed_memory
-from w2e_ros.core.config import ModelConfig
-from w2e_ros.core.model import W2EModel
-from w2e_ros.core.training import Batch, RunningAccuracy, training_losses
+from w2e_ros.core.infra.allocator import keep_freed_memory
+from w2e_ros.core.model.config import ModelConfig
+from w2e_ros.core.model.network import W2EModel
+from w2e_ros.core.model.training import Batch, RunningAccuracy, training_losses
 
 
 def _time(fn, repeat: int) -> float:

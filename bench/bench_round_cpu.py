@@ -32,10 +32,10 @@ import numpy as np
 import torch
 from bench_model import time_pair  # this folder: run as a script
 
-from w2e_ros.core.categories import load_categories
-from w2e_ros.core.explore import cloud_proposer, sample_candidates
-from w2e_ros.core.feasibility import approach_hits
-from w2e_ros.core.targets import Target
+from w2e_ros.core.dataset.categories import load_categories
+from w2e_ros.core.dataset.targets import Target
+from w2e_ros.core.exploration.explore import cloud_proposer, sample_candidates
+from w2e_ros.core.robot.feasibility import approach_hits
 from w2e_ros.experiments.sim_world import SimWorld
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -90,7 +90,7 @@ def main() -> None:
     ap.add_argument("--before", default=BEFORE, help="git revision of the numpy check")
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
-    old = module_at(a.before, "w2e_ros/core/feasibility.py", "feasibility_before")
+    old = module_at(a.before, "w2e_ros/core/robot/feasibility.py", "feasibility_before")
     cuda = torch.cuda.is_available()
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, OPENBLAS_NUM_THREADS="
           f"{os.environ.get('OPENBLAS_NUM_THREADS', 'unset')}, numpy check as of {a.before[:7]}")

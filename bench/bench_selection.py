@@ -18,7 +18,7 @@ import time
 import numpy as np
 import torch
 
-from w2e_ros.core.strategies import STRATEGIES, Scored
+from w2e_ros.core.exploration.strategies import STRATEGIES, Scored
 
 FEATURE_DIM = 128
 FEATURE_CENTRES = 300

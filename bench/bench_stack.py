@@ -36,7 +36,7 @@ def main() -> None:
 
     from w2e_ros.bringup import Stack
     from w2e_ros.client import W2EClient
-    from w2e_ros.core.model import W2EModel, save_model
+    from w2e_ros.core.model.network import W2EModel, save_model
     from w2e_ros.paths import default_checkpoint
     from w2e_ros.ros.conversions import to_point, to_vector3
     from w2e_ros.ros.processes import pick_domain_id, ros_env

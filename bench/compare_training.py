@@ -29,8 +29,8 @@ def _records(run: Path) -> list[dict]:
 
 
 def _score_checkpoint(path: str, data) -> dict:
-    from w2e_ros.core.model import load_model
-    from w2e_ros.core.training import Validator, method_categories
+    from w2e_ros.core.model.network import load_model
+    from w2e_ros.core.model.training import Validator, method_categories
 
     model, meta = load_model(path, "cpu")
     model.eval()
@@ -75,7 +75,7 @@ def _figure(curves: dict[str, list[dict]], points: dict[str, dict], path: Path) 
     """One panel per metric: the runs' validation curves, the checkpoints as stars."""
     import matplotlib.pyplot as plt
 
-    from w2e_ros.core.viz import write_figure  # selects the Agg backend
+    from w2e_ros.core.model.viz import write_figure  # selects the Agg backend
 
     shown = tuple(m for m in ("caff_auroc", "csim_auroc", "novel_auroc", "novel_fscore")
                   if any(recs and f"val_{m}" in recs[0] for recs in curves.values())
@@ -123,7 +123,7 @@ def main() -> int:
         curves[label] = _records(Path(run))
     points = {}
     if a.checkpoint:
-        from w2e_ros.core.data import InteractionData
+        from w2e_ros.core.dataset.interactions import InteractionData
 
         val = InteractionData.concat([InteractionData.load(d) for d in a.val_data])
         for spec in a.checkpoint:

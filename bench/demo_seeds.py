@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from w2e_ros.core.metrics import bootstrap_ci
+from w2e_ros.core.model.metrics import bootstrap_ci
 
 
 def run_demo(out: Path, strategy: str, seed: int, extra: list[str]) -> dict:
@@ -119,7 +119,7 @@ def write_tables(res: dict, out: Path, title: str) -> None:
 def plot(res: dict, out: Path, title: str) -> None:
     import matplotlib.pyplot as plt
 
-    from w2e_ros.core.viz import write_figure  # selects the Agg backend
+    from w2e_ros.core.model.viz import write_figure  # selects the Agg backend
 
     seeds = res["seeds"]
     sts = list(res["strategies"])

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 from scipy.stats import spearmanr
 
-from w2e_ros.core.metrics import auroc
+from w2e_ros.core.model.metrics import auroc
 
 RULES = ("random", "similarity", "nosim")
 LOW = 0.3  # "rated low": below this predicted affordance

@@ -31,7 +31,7 @@ import time
 from pathlib import Path
 
 from w2e_ros.bringup import Stack, random_model_args
-from w2e_ros.core.session_log import EVENTS, session_dir
+from w2e_ros.core.exploration.session_log import EVENTS, session_dir
 from w2e_ros.ros.processes import pick_domain_id, ros_env
 
 CATEGORY, PRIMITIVE, SESSION = "door", "pull", "faults"

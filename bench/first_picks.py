@@ -26,11 +26,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from w2e_ros.core.config import ExploreConfig
-from w2e_ros.core.explore import explore_targets, sample_candidates
-from w2e_ros.core.finetune import W2EExplorer
-from w2e_ros.core.metrics import bootstrap_ci
-from w2e_ros.core.model import load_model
+from w2e_ros.core.exploration.config import ExploreConfig
+from w2e_ros.core.exploration.explore import explore_targets, sample_candidates
+from w2e_ros.core.exploration.finetune import W2EExplorer
+from w2e_ros.core.model.metrics import bootstrap_ci
+from w2e_ros.core.model.network import load_model
 from w2e_ros.experiments.sim_world import SimWorld
 
 
@@ -44,8 +44,8 @@ def rule_keys(aff: np.ndarray, sim: np.ndarray, rng: np.random.Generator) -> dic
 def pooled_table(model, collection: str, categories: list[str], primitive: str,
                  seed: int) -> list[str]:
     """Success of the tenth of a collection's rows each rule ranks first, pooled."""
-    from w2e_ros.core.data import InteractionData
-    from w2e_ros.core.predict import predict_interactions
+    from w2e_ros.core.dataset.interactions import InteractionData
+    from w2e_ros.core.model.predict import predict_interactions
 
     d = InteractionData.load(collection)
     keep = (np.char.startswith(d.primitive.astype(str), primitive)
@@ -65,7 +65,7 @@ def pooled_table(model, collection: str, categories: list[str], primitive: str,
 def familiarity_table(scorer: W2EExplorer, world: SimWorld, objects: int, seed: int,
                       combo: str) -> list[str]:
     """Mean similarity of each novel category's first-round candidates (object means)."""
-    from w2e_ros.core.categories import load_categories
+    from w2e_ros.core.dataset.categories import load_categories
 
     cfg, rng = ExploreConfig(), np.random.default_rng(seed)
     rows = []

@@ -34,12 +34,12 @@ import numpy as np
 import torch
 from scipy.stats import spearmanr
 
-from w2e_ros.core.data import InteractionData
-from w2e_ros.core.familiarity import describe_data, knn_closeness
-from w2e_ros.core.metrics import auroc
-from w2e_ros.core.model import load_model
-from w2e_ros.core.predict import encode_clouds, predict_interactions
-from w2e_ros.core.training import method_categories
+from w2e_ros.core.dataset.interactions import InteractionData
+from w2e_ros.core.exploration.familiarity import describe_data, knn_closeness
+from w2e_ros.core.model.metrics import auroc
+from w2e_ros.core.model.network import load_model
+from w2e_ros.core.model.predict import encode_clouds, predict_interactions
+from w2e_ros.core.model.training import method_categories
 
 SCORES = ("similarity", "knn", "confidence", "geometry")
 

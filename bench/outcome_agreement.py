@@ -1,7 +1,7 @@
 """How often does the cloud judge agree with the joint truth? Simulated trials judged both ways.
 
 The trials are drawn exactly as ``w2e collect`` draws them (``observation_trials``: the
-proposal distribution of ``w2e_ros/core/proposals.py`` on the object's camera cloud, the
+proposal distribution of ``w2e_ros/core/exploration/proposals.py`` on the object's camera cloud, the
 collection's positive rate), on held-out instances (split ``test``: the cloud judge's
 thresholds were chosen on training instances). Every valid trial is judged by the
 simulator's joint states (``judge_motion``, the truth) and by the object's camera clouds
@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from w2e_ros.core.categories import load_categories
+from w2e_ros.core.dataset.categories import load_categories
 from w2e_ros.experiments.collect import CollectConfig, observation_trials, plan_chunks
 from w2e_ros.experiments.sim_world import SimWorld
 

@@ -29,11 +29,11 @@ import numpy as np
 
 def score(model_path: str, val_dirs: list[str], n_boot: int, resample: str = "observation",
           per_instance: bool = False) -> dict:
-    from w2e_ros.core.data import InteractionData
-    from w2e_ros.core.metrics import auroc, bootstrap_ci
-    from w2e_ros.core.model import load_model
-    from w2e_ros.core.predict import predict_interactions
-    from w2e_ros.core.training import Validator, method_categories
+    from w2e_ros.core.dataset.interactions import InteractionData
+    from w2e_ros.core.model.metrics import auroc, bootstrap_ci
+    from w2e_ros.core.model.network import load_model
+    from w2e_ros.core.model.predict import predict_interactions
+    from w2e_ros.core.model.training import Validator, method_categories
 
     paths = model_path.split("+")  # A.pt+B.pt: the ensemble's mean probability
     meta = load_model(paths[0], "cpu")[1]
@@ -84,7 +84,7 @@ def paired_training_score(a: tuple, b: tuple, n_boot: int, novel: bool = False
     """Training score of b minus a on the same held-out rows (``novel``: the pooled AUROC of
     the novel categories' rows), with one bootstrap interval over the shared resampling
     units: the difference, not two overlapping intervals."""
-    from w2e_ros.core.metrics import auroc, bootstrap_ci
+    from w2e_ros.core.model.metrics import auroc, bootstrap_ci
 
     (pa, y, cats, unit, train_cats), pb = a, b[0]
     if len(pb) != len(pa) or not np.array_equal(b[1], y):
@@ -101,7 +101,7 @@ def paired_training_score(a: tuple, b: tuple, n_boot: int, novel: bool = False
 def category_mean_auroc(prob: np.ndarray, y: np.ndarray, cats: np.ndarray,
                         train_cats: list[str], rows: np.ndarray) -> float:
     """The training score: the mean over the training categories of their AUROC on ``rows``."""
-    from w2e_ros.core.metrics import auroc
+    from w2e_ros.core.model.metrics import auroc
 
     return float(np.nanmean([auroc(prob[rows][cats[rows] == c], y[rows][cats[rows] == c])
                              for c in train_cats]))

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from w2e_ros.core.metrics import fscore
+from w2e_ros.core.model.metrics import fscore
 
 
 def rates(pred: np.ndarray, y: np.ndarray) -> tuple[float, float, float]:

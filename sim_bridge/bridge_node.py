@@ -64,7 +64,7 @@ from sim_bridge.geometry import box_mesh, make_pose, transform_points
 from sim_bridge.objects import make_object
 from sim_bridge.objects.model import ObjectModel
 from sim_bridge.world import ObjectWorld
-from w2e_ros.core import kinematics as kin
+from w2e_ros.core.robot import kinematics as kin
 from w2e_ros.ros.conversions import from_pose, to_pose, to_vector3
 from w2e_ros.ros.params import ParameterError, declare_typed_parameters, describe, param
 from w2e_ros.ros.peers import announce

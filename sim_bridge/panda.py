@@ -21,7 +21,7 @@ Why each choice:
   collision groups; the IK plans no self-collision either).
 
 :func:`run_arm_trial` is the arm's version of :meth:`ObjectWorld.run_trial`: the primitive's
-wrist waypoints planned by IK (:func:`w2e_ros.core.kinematics.plan_trajectory`; unreachable:
+wrist waypoints planned by IK (:func:`w2e_ros.core.robot.kinematics.plan_trajectory`; unreachable:
 reported before anything is built), executed on the simulated arm, judged with the same rule.
 """
 
@@ -44,8 +44,8 @@ from sim_bridge.physics import (
     make_scene,
 )
 from sim_bridge.world import ObjectWorld
-from w2e_ros.core import kinematics as kin
-from w2e_ros.core.primitives import FINGER_MAX, Action, TrialResult, schedule
+from w2e_ros.core.robot import kinematics as kin
+from w2e_ros.core.robot.primitives import FINGER_MAX, Action, TrialResult, schedule
 
 ROBOT_PREFIX = "panda/"  # body names of the arm's links in the scene
 FINGER_JOINTS: tuple[str, str] = ("panda_finger_joint1", "panda_finger_joint2")

@@ -15,7 +15,7 @@ import sapien
 
 from sim_bridge.geometry import frame_from_x, make_pose, pose_to_sapien
 from sim_bridge.objects.model import ObjectModel
-from w2e_ros.core.primitives import (  # the hand's shapes belong to the contract
+from w2e_ros.core.robot.primitives import (  # the hand's shapes belong to the contract
     FINGER_HALF,
     FINGER_JOINT_Z,
     FINGER_LENGTH,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from sim_bridge.types import Observation
-from w2e_ros.core.primitives import Action
+from w2e_ros.core.robot.primitives import Action
 
 
 def random_direction_against(normal: np.ndarray, rng: np.random.Generator) -> np.ndarray:

@@ -1,7 +1,7 @@
 """What the simulated camera sees: a partial cloud with the simulator's ground truth.
 
 The primitives contract (``Action``, ``TrialResult``) belongs to the core
-(:mod:`w2e_ros.core.primitives`); this observation, with its per-point link, movable and
+(:mod:`w2e_ros.core.robot.primitives`); this observation, with its per-point link, movable and
 object labels, exists only in simulation.
 """
 

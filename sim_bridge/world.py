@@ -3,7 +3,7 @@
 Every trial builds a fresh physics-only SAPIEN scene, restores the given joint state,
 drops in the flying gripper and executes the primitive, so trials are
 independent and bit-identical for the same inputs. The primitive's waypoints and the success
-rule are the core's contract (:mod:`w2e_ros.core.primitives`), which this world implements.
+rule are the core's contract (:mod:`w2e_ros.core.robot.primitives`), which this world implements.
 The camera works from the same object descriptions without any physics.
 """
 
@@ -26,7 +26,7 @@ from sim_bridge.camera import (
 from sim_bridge.geometry import make_pose, sapien_to_pose, transform_points
 from sim_bridge.objects.model import ObjectModel
 from sim_bridge.types import Observation
-from w2e_ros.core.primitives import (
+from w2e_ros.core.robot.primitives import (
     PUSH_START,
     Action,
     TrialResult,

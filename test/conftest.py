@@ -6,7 +6,7 @@ import os
 
 import pytest
 
-from w2e_ros.core.allocator import keep_freed_memory
+from w2e_ros.core.infra.allocator import keep_freed_memory
 
 
 def pytest_configure(config: pytest.Config) -> None:

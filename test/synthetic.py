@@ -11,8 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from w2e_ros.core.data import InteractionData
-from w2e_ros.core.primitives import Action, TrialResult
+from w2e_ros.core.dataset.interactions import InteractionData
+from w2e_ros.core.robot.primitives import Action, TrialResult
 
 
 def synthetic_data(categories=("cabinet", "faucet", "window"), obs_per_cat: int = 4,

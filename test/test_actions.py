@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from w2e_ros.core.actions import encode_rotation, sample_forward, sample_up, sample_up_cone
+from w2e_ros.core.robot.actions import encode_rotation, sample_forward, sample_up, sample_up_cone
 
 
 # --- the formulas before the row-wise dot products (np.sum / np.linalg.norm), for equality --

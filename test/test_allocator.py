@@ -11,7 +11,7 @@ import pytest
 _PROBE = """
 import resource, sys
 import torch
-from w2e_ros.core.allocator import keep_freed_memory
+from w2e_ros.core.infra.allocator import keep_freed_memory
 took = keep_freed_memory() if sys.argv[1] == "kept" else False
 for _ in range(3):  # 64 MiB: above glibc's default mmap threshold; the heap grows twice
     torch.ones(16 << 20).sum()

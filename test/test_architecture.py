@@ -1,10 +1,14 @@
 """Which way the dependencies point: the core owns the primitives contract, the simulator
 implements it, and a robot workstation without the simulator imports the core and the nodes.
 
-The core (``w2e_ros.core``) is a library: no module of it imports the simulator
-(``sim_bridge``, SAPIEN) or the simulator experiments (``w2e_ros.experiments``), not even
-inside a function, where a test that only imports the modules cannot see it. The
-experiments stand beside it and may import both."""
+The core (``w2e_ros.core``) is a library in layers, each importing only those below it, not
+even inside a function: ``infra`` (settings, threads) at the bottom; ``dataset`` (interactions,
+categories, targets) and ``robot`` (the primitives contract and the robot's geometry) on it,
+neither importing the other; ``model`` (the network, its training) on those; and
+``exploration`` (the rules, the loop, fine-tuning) on top. No module of the core imports the
+simulator (``sim_bridge``, SAPIEN) or the simulator experiments (``w2e_ros.experiments``).
+The experiments stand beside it and may import both; the simulator imports of the core only
+the robot contract it implements."""
 
 from __future__ import annotations
 
@@ -24,8 +28,20 @@ EXPERIMENTS = "w2e_ros.experiments"
 
 # What a workstation next to a real arm runs: the learning core, the ROS helpers and the nodes.
 WORKSTATION_CORE = ["w2e_ros.core." + m for m in (
-    "primitives", "actions", "model", "finetune", "explore", "evaluate", "training", "predict",
-    "strategies", "metrics", "proposals", "session_log", "policy", "targets")]
+    "robot.primitives", "robot.actions", "model.network", "exploration.finetune",
+    "exploration.explore", "exploration.evaluate", "model.training", "model.predict",
+    "exploration.strategies", "model.metrics", "exploration.proposals",
+    "exploration.session_log", "model.policy", "dataset.targets")]
+
+CORE = "w2e_ros.core"
+# Each part of the core -> the parts it may import (besides itself).
+LAYERS = {
+    "infra": set(),
+    "dataset": {"infra"},
+    "robot": {"infra"},
+    "model": {"infra", "dataset", "robot"},
+    "exploration": {"infra", "dataset", "robot", "model"},
+}
 WORKSTATION_ROS = ["w2e_ros.ros.conversions", "w2e_ros.ros.waypoints", "w2e_ros.ros.segmentation",
                    "w2e_ros.ros.futures", "w2e_ros.ros.explore_service",
                    "w2e_ros.client"] + ["w2e_ros.nodes." + m for m in (
@@ -165,10 +181,56 @@ def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
 
 def test_core_modules_import_each_other_without_cycles():
     graph = _import_graph("w2e_ros.core")
-    assert "w2e_ros.core.explore" in graph and graph["w2e_ros.core.explore"]
-    assert graph["w2e_ros.core.training.trainer"] >= {"w2e_ros.core.training.losses",
-                                                      "w2e_ros.core.model"}
+    assert "w2e_ros.core.exploration.explore" in graph
+    assert graph["w2e_ros.core.exploration.explore"]
+    assert graph["w2e_ros.core.model.training.trainer"] >= {
+        "w2e_ros.core.model.training.losses", "w2e_ros.core.model.network"}
     assert _cycles(graph) == []
+
+
+def _part(module: str) -> str | None:
+    """The part of the core (``model``, ``robot``...) a module belongs to; None outside it."""
+    if not module.startswith(CORE + "."):
+        return None
+    return module[len(CORE) + 1:].split(".")[0]
+
+
+def test_every_core_module_sits_in_one_of_its_parts():
+    strays = [m for m in _modules(CORE) if m != CORE and _part(m) not in LAYERS]
+    assert strays == [], f"modules outside {sorted(LAYERS)}: {strays}"
+    assert all(importlib.util.find_spec(f"{CORE}.{p}") for p in LAYERS)
+
+
+def _upward_imports(package: str, layers: dict[str, set[str]]) -> dict[str, list[str]]:
+    """Module of ``package`` -> the core modules it imports (anywhere in it) that its part
+    may not import."""
+    offenders = {}
+    for name, path in _modules(package).items():
+        part = _part(name)
+        imported = _all_imports(ast.parse(path.read_text()), name, path.name == "__init__.py")
+        bad = sorted(m for m in imported if _part(m) is not None and _part(m) != part
+                     and _part(m) not in layers.get(part, set()))
+        if bad:
+            offenders[name] = bad
+    return offenders
+
+
+def test_the_core_imports_point_down_its_layers_even_inside_functions():
+    assert _upward_imports(CORE, LAYERS) == {}
+
+
+def test_the_layer_check_sees_an_upward_import():
+    offenders = _upward_imports(CORE, {**LAYERS, "model": {"infra", "dataset"}})
+    assert "w2e_ros.core.model.policy" in offenders  # the policy checks the robot's approach
+    assert "w2e_ros.core.robot.feasibility" in offenders["w2e_ros.core.model.policy"]
+
+
+def test_the_simulator_imports_of_the_core_only_the_robot_contract():
+    imported = set()
+    for name, path in _modules("sim_bridge").items():
+        imported |= _all_imports(ast.parse(path.read_text()), name, path.name == "__init__.py")
+    parts = {_part(m) for m in imported} - {None}
+    assert parts == {"robot"}, parts
 
 
 def test_experiment_modules_import_each_other_without_cycles():

@@ -30,8 +30,8 @@ from trajectory_msgs.msg import JointTrajectory
 from w2e_msgs.action import FollowWaypoints
 from waits import result_of, wait_until
 
-from w2e_ros.core import kinematics as kin
-from w2e_ros.core.primitives import Action
+from w2e_ros.core.robot import kinematics as kin
+from w2e_ros.core.robot.primitives import Action
 from w2e_ros.ros.conversions import to_pose
 from w2e_ros.ros.processes import (
     clean_shm_at_exit,

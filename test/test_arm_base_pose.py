@@ -14,7 +14,7 @@ from rclpy.parameter import Parameter
 from w2e_msgs.msg import SceneObject
 
 from w2e_ros.bringup import default_params, node_parameters
-from w2e_ros.core import kinematics as kin
+from w2e_ros.core.robot import kinematics as kin
 from w2e_ros.nodes.arm_adapter_node import ArmAdapterNode
 from w2e_ros.nodes.planner_node import PlannerNode
 from w2e_ros.ros.processes import pick_domain_id, ros_env

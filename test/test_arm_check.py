@@ -1,6 +1,6 @@
 """The whole-arm check: the Panda's links along the planned joint trajectory against the
-observed cloud, the links and the hand against the table plane (core.feasibility), and the
-capsules that stand for the links (core.kinematics)."""
+observed cloud, the links and the hand against the table plane (core.robot.feasibility), and the
+capsules that stand for the links (core.robot.kinematics)."""
 
 from __future__ import annotations
 
@@ -9,8 +9,9 @@ import struct
 import numpy as np
 import pytest
 
-from w2e_ros.core import kinematics as kin
-from w2e_ros.core.feasibility import (
+from w2e_ros.core.model.policy import ManipulatePolicy
+from w2e_ros.core.robot import kinematics as kin
+from w2e_ros.core.robot.feasibility import (
     DEFAULT_ARM_CHECK,
     FLYING,
     Arm,
@@ -20,7 +21,6 @@ from w2e_ros.core.feasibility import (
     feasible,
     first_feasible,
 )
-from w2e_ros.core.policy import ManipulatePolicy
 
 PANDA = Arm("panda")  # base at the origin, table plane at its height
 UP = np.array([1.0, 0.0, 0.0])  # pull a drawer front facing the base, fingers along z
@@ -171,7 +171,7 @@ def test_the_simulated_panda_can_make_the_free_move_from_the_ready_pose():
     from sim_bridge import panda as sim_panda
     from sim_bridge.objects import make_object
     from sim_bridge.world import ObjectWorld
-    from w2e_ros.core.primitives import Action
+    from w2e_ros.core.robot.primitives import Action
 
     for instance in range(50):  # the first cabinet with a drawer
         model = make_object("cabinet", instance)

@@ -25,7 +25,7 @@ from waits import result_of, wait_until
 from sim_bridge.objects import make_object
 from sim_bridge.world import ObjectWorld
 from w2e_ros.bringup import Stack
-from w2e_ros.core.primitives import Action
+from w2e_ros.core.robot.primitives import Action
 from w2e_ros.ros.conversions import action_to_interaction, from_pose, to_pose
 from w2e_ros.ros.pointcloud import cloud_to_arrays
 from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, ros_env

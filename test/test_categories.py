@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import yaml
 
-from w2e_ros.core.categories import UnknownCategoryError, load_categories
+from w2e_ros.core.dataset.categories import UnknownCategoryError, load_categories
 
 
 def _write(tmp_path, splits: dict, name: str = "cats.yaml") -> str:

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from synthetic import synthetic_data
 
-from w2e_ros.core.primitives import Action
+from w2e_ros.core.robot.primitives import Action
 from w2e_ros.experiments.ceiling import (
     PERTURBATIONS,
     _pick_trials,

@@ -13,14 +13,9 @@ from pathlib import Path
 import pytest
 
 from w2e_ros import cli
-from w2e_ros.core.config import (
-    NETWORK_FLAGS,
-    ExploreConfig,
-    FinetuneConfig,
-    ModelConfig,
-    TrainConfig,
-)
-from w2e_ros.core.settings import flag, from_namespace, leaf_fields
+from w2e_ros.core.exploration.config import ExploreConfig, FinetuneConfig
+from w2e_ros.core.infra.settings import flag, from_namespace, leaf_fields
+from w2e_ros.core.model.config import NETWORK_FLAGS, ModelConfig, TrainConfig
 from w2e_ros.experiments.benchmark import METHOD_SPEC, _merge_configs, run_configs
 from w2e_ros.experiments.config import (
     BenchmarkConfig,

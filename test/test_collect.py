@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from w2e_ros.core.categories import load_categories
-from w2e_ros.core.data import InteractionData
+from w2e_ros.core.dataset.categories import load_categories
+from w2e_ros.core.dataset.interactions import InteractionData
 from w2e_ros.experiments.collect import CollectConfig, collect, plan_chunks
 
 

@@ -25,8 +25,8 @@ import torch
 import torch.multiprocessing as tmp
 from synthetic import synthetic_data
 
-from w2e_ros.core.config import ModelConfig, TrainConfig
-from w2e_ros.core.training import train
+from w2e_ros.core.model.config import ModelConfig, TrainConfig
+from w2e_ros.core.model.training import train
 
 SMALL = ModelConfig(num_points=256, sa_npoint=(64, 16, 8, 4))
 STEPS = 8

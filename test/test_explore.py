@@ -9,14 +9,15 @@ import pytest
 import torch
 from synthetic import Cloud, RuleWorld, synthetic_data
 
-from w2e_ros.core.config import ExploreConfig, FinetuneConfig, ModelConfig
-from w2e_ros.core.explore import Executed, cloud_proposer, explore, sample_candidates
-from w2e_ros.core.feasibility import Arm, approach_clear, arm_reachable
-from w2e_ros.core.finetune import W2EExplorer
-from w2e_ros.core.model import W2EModel
-from w2e_ros.core.primitives import TrialResult
-from w2e_ros.core.proposals import ProposalConfig
-from w2e_ros.core.strategies import Scored, get_strategy
+from w2e_ros.core.exploration.config import ExploreConfig, FinetuneConfig
+from w2e_ros.core.exploration.explore import Executed, cloud_proposer, explore, sample_candidates
+from w2e_ros.core.exploration.finetune import W2EExplorer
+from w2e_ros.core.exploration.proposals import ProposalConfig
+from w2e_ros.core.exploration.strategies import Scored, get_strategy
+from w2e_ros.core.model.config import ModelConfig
+from w2e_ros.core.model.network import W2EModel
+from w2e_ros.core.robot.feasibility import Arm, approach_clear, arm_reachable
+from w2e_ros.core.robot.primitives import TrialResult
 
 torch.set_num_threads(2)
 SMALL = ModelConfig(num_points=256, sa_npoint=(64, 16, 8, 4))
@@ -375,8 +376,8 @@ def test_fine_tuning_fits_the_explored_interactions(novel):
 
 @pytest.mark.slow
 def test_loop_explores_simulated_objects_and_learns_from_the_outcomes():
-    from w2e_ros.core.evaluate import SuccessProbe, evaluation_targets
-    from w2e_ros.core.explore import explore_targets
+    from w2e_ros.core.exploration.evaluate import SuccessProbe, evaluation_targets
+    from w2e_ros.core.exploration.explore import explore_targets
     from w2e_ros.experiments.sim_world import SimWorld
 
     world = SimWorld()
@@ -400,7 +401,7 @@ def test_loop_explores_simulated_objects_and_learns_from_the_outcomes():
 
 @pytest.mark.slow
 def test_fewshot_spends_the_budget_per_object_over_all_novel_categories():
-    from w2e_ros.core.explore import fewshot
+    from w2e_ros.core.exploration.explore import fewshot
     from w2e_ros.experiments.sim_world import SimWorld
 
     torch.manual_seed(0)
@@ -445,7 +446,7 @@ def test_cli_explore_defaults_are_the_core_defaults():
     from dataclasses import asdict
 
     from w2e_ros import cli
-    from w2e_ros.core.config import ExploreConfig
+    from w2e_ros.core.exploration.config import ExploreConfig
 
     parser = cli.build_parser()
     for argv in (["fewshot", "--model", "m.pt", "--out", "o"], ["benchmark"],

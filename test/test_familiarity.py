@@ -1,5 +1,5 @@
-"""The model-free familiarity (w2e_ros.core.familiarity): the descriptor tells a line from a
-plane from a blob around the contact, the k-NN closeness calls a contact like the bank's more
+"""The model-free familiarity (w2e_ros.core.exploration.familiarity): the descriptor tells a line
+from a plane from a blob around the contact, the k-NN closeness calls a contact like the bank's more
 familiar than one unlike it, and the geometry strategies explore the unfamiliar first."""
 
 from __future__ import annotations
@@ -7,15 +7,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from w2e_ros.core.data import InteractionData
-from w2e_ros.core.familiarity import (
+from w2e_ros.core.dataset.interactions import InteractionData
+from w2e_ros.core.exploration.familiarity import (
     DIM,
     RADII,
     GeometryFamiliarity,
     describe_data,
     knn_closeness,
 )
-from w2e_ros.core.strategies import Scored, get_strategy
+from w2e_ros.core.exploration.strategies import Scored, get_strategy
 
 
 def _data(clouds: list[np.ndarray]) -> InteractionData:

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from w2e_ros.core import primitives
-from w2e_ros.core.feasibility import (
+from w2e_ros.core.robot import primitives
+from w2e_ros.core.robot.feasibility import (
     FLYING,
     ApproachCheck,
     Arm,
@@ -123,7 +123,7 @@ def test_many_candidates_at_once_match_one_at_a_time_in_any_frame():
 def _numpy_hits(cloud, point, up, forward, primitive, check=None, chunk_pairs=1 << 22):
     """The numpy check the torch one replaced (valid inputs only), for equality."""
     check = check or ApproachCheck()
-    from w2e_ros.core.feasibility import PUSH_START
+    from w2e_ros.core.robot.feasibility import PUSH_START
 
     point, up, forward = (np.atleast_2d(np.asarray(a, np.float64)) for a in (point, up, forward))
     up = up / np.linalg.norm(up, axis=1, keepdims=True)
@@ -193,9 +193,9 @@ def test_the_torch_check_counts_what_the_numpy_one_counted(primitive):
 @pytest.mark.slow
 def test_the_torch_check_counts_what_the_numpy_one_counted_on_simulated_clouds():
     """Every category's first training object, the exploring round's candidates."""
-    from w2e_ros.core.categories import load_categories
-    from w2e_ros.core.explore import sample_candidates
-    from w2e_ros.core.targets import Target
+    from w2e_ros.core.dataset.categories import load_categories
+    from w2e_ros.core.dataset.targets import Target
+    from w2e_ros.core.exploration.explore import sample_candidates
     from w2e_ros.experiments.sim_world import SimWorld
 
     world, rng, cats = SimWorld(), np.random.default_rng(0), load_categories()
@@ -282,8 +282,8 @@ def test_a_rejected_approach_is_invalid_in_the_simulator():
     from inside the body, runs the hand through the cabinet's top panel: the check rejects it
     and the simulator finds the hand in contact at its first step. From the front the same
     push is clear and valid."""
-    from w2e_ros.core.primitives import Action
-    from w2e_ros.core.targets import Target
+    from w2e_ros.core.dataset.targets import Target
+    from w2e_ros.core.robot.primitives import Action
     from w2e_ros.experiments.sim_world import SimWorld
 
     world, target = SimWorld(), Target("cabinet", 40, 0)

@@ -7,10 +7,11 @@ import pytest
 import torch
 from synthetic import synthetic_data
 
-from w2e_ros.core.config import FinetuneConfig, ModelConfig
-from w2e_ros.core.finetune import Rows, W2EExplorer, balanced_weights
-from w2e_ros.core.model import W2EModel
-from w2e_ros.core.predict import FeatureCache
+from w2e_ros.core.exploration.config import FinetuneConfig
+from w2e_ros.core.exploration.finetune import Rows, W2EExplorer, balanced_weights
+from w2e_ros.core.model.config import ModelConfig
+from w2e_ros.core.model.network import W2EModel
+from w2e_ros.core.model.predict import FeatureCache
 
 torch.set_num_threads(2)
 SMALL = ModelConfig(num_points=256, sa_npoint=(64, 16, 8, 4))
@@ -114,7 +115,7 @@ def test_fit_stops_when_the_explored_loss_levels_off(novel):
 
 
 def test_replay_rows_are_distinct_training_interactions_with_their_roles(replay):
-    from w2e_ros.core.actions import encode_rotation
+    from w2e_ros.core.robot.actions import encode_rotation
 
     exp = _explorer("heads", replay, replay_fraction=0.2)
     r = exp.replay_rows
@@ -138,7 +139,7 @@ def test_a_replay_pack_is_replayed_whole(replay):
     is already the sample: every row of it, not replay_fraction of it again."""
     import dataclasses
 
-    from w2e_ros.core.training import REPLAY_PACK
+    from w2e_ros.core.model.training import REPLAY_PACK
 
     pack = dataclasses.replace(replay, meta={**replay.meta, REPLAY_PACK: {"fraction": 0.01}})
     assert len(_explorer("heads", pack, replay_fraction=0.2).replay_rows) == \
@@ -149,8 +150,8 @@ def test_a_replay_pack_is_replayed_whole(replay):
 
 def test_update_adds_executed_interactions_and_the_replay_keeps_training_behaviour(novel,
                                                                                   replay):
-    from w2e_ros.core.explore import Candidates, Executed
-    from w2e_ros.core.primitives import TrialResult
+    from w2e_ros.core.exploration.explore import Candidates, Executed
+    from w2e_ros.core.robot.primitives import TrialResult
 
     exp = _explorer("heads", replay, replay_fraction=0.1, finetune_steps=20,
                     finetune_min_steps=20)
@@ -217,7 +218,7 @@ def test_a_balanced_similarity_stays_balanced_while_fine_tuning(novel):
     The similarity loss is then the class-balanced BCE to the correctness target."""
     import torch.nn.functional as F
 
-    from w2e_ros.core.training import RunningAccuracy
+    from w2e_ros.core.model.training import RunningAccuracy
 
     rows = np.concatenate([np.flatnonzero(novel.success)[:2],
                            np.flatnonzero(~novel.success)[:18]])
@@ -248,8 +249,8 @@ def test_default_fine_tuning_learns_what_it_explored_within_its_prior():
     simulator pulls (the shipped replay pack) on the shipped pull model. Measured on the
     validation split (bench/RESEARCH.md): fitted freely, 55 random novel pulls cost 6
     AUROC points; with the prior 4, and 1,100 pulls gain 4."""
-    from w2e_ros.core.data import InteractionData
-    from w2e_ros.core.model import load_model
+    from w2e_ros.core.dataset.interactions import InteractionData
+    from w2e_ros.core.model.network import load_model
     from w2e_ros.paths import default_checkpoint, default_replay_pack
 
     data = InteractionData.load(default_replay_pack())

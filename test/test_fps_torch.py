@@ -1,7 +1,7 @@
 """Farthest point sampling in torch against ``fpsample``, and the model and the collector
 without ``fpsample``.
 
-What was found (``w2e_ros.core.fps``): both are exact FPS and give the same indices from the
+What was found (``w2e_ros.core.robot.fps``): both are exact FPS and give the same indices from the
 same first point; ``bucket_fps_kdline_sampling`` does not start at ``start_idx`` (its first
 sample is a point of its kd-tree's order); on ray-cast clouds (a pixel grid on flat faces)
 equally far points may be taken in another order (a few positions of 1,024). Coverage
@@ -19,12 +19,12 @@ import pytest
 import torch
 from scipy.spatial import cKDTree
 
-from w2e_ros.core import fps as fps_module
-from w2e_ros.core.config import ModelConfig
-from w2e_ros.core.fps import farthest_point_sample_torch, load_fpsample
-from w2e_ros.core.model import W2EModel
-from w2e_ros.core.pointcloud import fps_indices
-from w2e_ros.core.pointnet2_geometry import farthest_point_sample
+from w2e_ros.core.model.config import ModelConfig
+from w2e_ros.core.model.network import W2EModel
+from w2e_ros.core.model.pointnet2_geometry import farthest_point_sample
+from w2e_ros.core.robot import fps as fps_module
+from w2e_ros.core.robot.fps import farthest_point_sample_torch, load_fpsample
+from w2e_ros.core.robot.pointcloud import fps_indices
 
 torch.set_num_threads(1)
 
@@ -138,7 +138,7 @@ def test_the_model_with_the_fallback_forced(monkeypatch) -> None:
         start = torch.tensor([firsts.pop(0) for _ in range(len(xyz))])
         return loop(xyz, npoint, start)
 
-    geometry = "w2e_ros.core.pointnet2_geometry.farthest_point_sample_torch"
+    geometry = "w2e_ros.core.model.pointnet2_geometry.farthest_point_sample_torch"
     with torch.no_grad():
         monkeypatch.setattr(geometry, from_point_zero)
         fallback = model.encode(x)

@@ -31,7 +31,7 @@ from sensor_msgs.msg import JointState
 from w2e_msgs.action import FollowWaypoints
 from waits import wait_until
 
-from w2e_ros.core import kinematics as kin
+from w2e_ros.core.robot import kinematics as kin
 from w2e_ros.ros.conversions import to_pose
 from w2e_ros.ros.processes import (
     clean_shm_at_exit,

@@ -22,8 +22,8 @@ from w2e_msgs.msg import InteractionOutcome
 from w2e_msgs.srv import PredictMaps, UpdateModel
 from waits import result_of, wait_until
 
-from w2e_ros.core.config import ModelConfig
-from w2e_ros.core.model import W2EModel, load_model, save_model
+from w2e_ros.core.model.config import ModelConfig
+from w2e_ros.core.model.network import W2EModel, load_model, save_model
 from w2e_ros.nodes.inference_node import InferenceNode
 from w2e_ros.ros.pointcloud import arrays_to_cloud, cloud_to_arrays, unpack_rgb
 from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, shm_files
@@ -175,12 +175,12 @@ def test_query_scores_equal_the_map_for_the_same_action(graph):
 def test_the_stack_and_the_benchmark_pick_the_same_action_on_the_same_cloud(
         graph, checkpoints, check_approach):
     """The planner's manipulate (the node's ranked map, then the policy's choice) and the
-    benchmark's success probe (maps sampler) run one policy (w2e_ros.core.policy)."""
+    benchmark's success probe (maps sampler) run one policy (w2e_ros.core.model.policy)."""
     from types import SimpleNamespace
 
-    from w2e_ros.core.evaluate import SuccessProbe
-    from w2e_ros.core.feasibility import DEFAULT_CHECK
-    from w2e_ros.core.policy import ManipulatePolicy
+    from w2e_ros.core.exploration.evaluate import SuccessProbe
+    from w2e_ros.core.model.policy import ManipulatePolicy
+    from w2e_ros.core.robot.feasibility import DEFAULT_CHECK
     from w2e_ros.ros.conversions import interaction_to_action
 
     p, nrm = box_cloud(256, 6)
@@ -387,8 +387,8 @@ def test_a_replay_pack_is_replayed_whole_and_a_collection_by_replay_fraction(
         checkpoints, tmp_path):
     from synthetic import synthetic_data
 
-    from w2e_ros.core.data import InteractionData
-    from w2e_ros.core.training import replay_pack
+    from w2e_ros.core.dataset.interactions import InteractionData
+    from w2e_ros.core.model.training import replay_pack
     from w2e_ros.paths import default_replay_pack
 
     data = InteractionData.concat([
@@ -429,8 +429,8 @@ def test_services_answer_while_the_replay_is_encoded_and_updates_wait_for_it(
     spins one thread: while an update waits, requests queue behind it as behind a fit)."""
     from synthetic import synthetic_data
 
-    from w2e_ros.core.finetune import W2EExplorer
-    from w2e_ros.core.training import replay_pack
+    from w2e_ros.core.exploration.finetune import W2EExplorer
+    from w2e_ros.core.model.training import replay_pack
 
     data = synthetic_data(obs_per_cat=5, per_obs=40, primitive="pull", seed=1)
     replay_pack(data, "w2e", "cfw", primitives=("pull",), fraction=0.05).save_shard(

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from w2e_ros.core import kinematics as kin
-from w2e_ros.core.primitives import FINGER_JOINT_Z
+from w2e_ros.core.robot import kinematics as kin
+from w2e_ros.core.robot.primitives import FINGER_JOINT_Z
 
 
 def test_fk_of_the_ready_pose_puts_the_hand_above_the_table_pointing_down():

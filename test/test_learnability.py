@@ -8,8 +8,9 @@ import pytest
 import torch
 from synthetic import synthetic_data
 
-from w2e_ros.core.config import ExploreConfig, FinetuneConfig, ModelConfig
-from w2e_ros.core.model import W2EModel, save_model
+from w2e_ros.core.exploration.config import ExploreConfig, FinetuneConfig
+from w2e_ros.core.model.config import ModelConfig
+from w2e_ros.core.model.network import W2EModel, save_model
 from w2e_ros.experiments.learnability import LearnabilityConfig, run_learnability
 
 torch.set_num_threads(2)
@@ -62,7 +63,7 @@ def test_learnability_curves_rise_with_the_explored_interactions(setup):
     for f in ("learnability.json", "learnability.md", "learnability_push.png"):
         assert (d / "out" / f).stat().st_size > 0
     # what each selection held, and the selection paired with random at the same seed and N
-    from w2e_ros.core.data import InteractionData
+    from w2e_ros.core.dataset.interactions import InteractionData
     pool_rate = InteractionData.load(str(d / "pool")).select(
         primitive="push", instances=list(range(30, 40))).positive_rate()
     assert "picked_success" not in base
@@ -179,9 +180,9 @@ def test_cli_label_free_selection_picks_predicted_failures(setup):
     rows = {row["selection"]: row for row in
             map(json.loads, (out / "rows.jsonl").read_text().splitlines())}
     # the base model's predicted failures in the pool: the rule takes all it can of them
-    from w2e_ros.core.data import InteractionData
-    from w2e_ros.core.model import load_model
-    from w2e_ros.core.predict import predict_interactions
+    from w2e_ros.core.dataset.interactions import InteractionData
+    from w2e_ros.core.model.network import load_model
+    from w2e_ros.core.model.predict import predict_interactions
     pool = InteractionData.load(str(d / "pool")).select(primitive="push",
                                                         instances=list(range(30, 40)))
     said_no = int((predict_interactions(load_model(str(d / "model.pt"))[0], pool)[0]

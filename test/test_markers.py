@@ -17,7 +17,7 @@ import yaml
 from builtin_interfaces.msg import Time
 from visualization_msgs.msg import Marker
 
-from w2e_ros.core.primitives import Action
+from w2e_ros.core.robot.primitives import Action
 from w2e_ros.ros.markers import (
     APPROACH_LENGTH,
     ARROW,

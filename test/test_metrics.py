@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from w2e_ros.core.metrics import (
+from w2e_ros.core.model.metrics import (
     affordance_fscore_from_probs,
     auroc,
     average_precision,
@@ -176,21 +176,25 @@ def test_bootstrap_resamples_whole_groups_not_rows():
         assert counts.sum() == 200
 
 
-# --- evaluation of a model (w2e_ros.core.evaluate) ---------------------------------------
+# --- evaluation of a model (w2e_ros.core.exploration.evaluate) ----------------------------------
 
 def test_predictions_match_the_model_on_each_interaction():
     import torch
     from synthetic import RuleWorld, synthetic_data
 
-    from w2e_ros.core.config import ModelConfig
-    from w2e_ros.core.evaluate import SuccessProbe, fscore_by_category, predict_interactions
-    from w2e_ros.core.model import W2EModel
+    from w2e_ros.core.exploration.evaluate import (
+        SuccessProbe,
+        fscore_by_category,
+        predict_interactions,
+    )
+    from w2e_ros.core.model.config import ModelConfig
+    from w2e_ros.core.model.network import W2EModel
 
     torch.manual_seed(0)
     model = W2EModel(ModelConfig(num_points=256, sa_npoint=(64, 16, 8, 4))).eval()
     data = synthetic_data(categories=("kettle", "bucket"), obs_per_cat=3, per_obs=10)
     aff, sim = predict_interactions(model, data, chunk=4)  # chunks cut across categories
-    from w2e_ros.core.actions import encode_rotation
+    from w2e_ros.core.robot.actions import encode_rotation
 
     with torch.no_grad():
         logit, s = model(torch.from_numpy(data.points), torch.from_numpy(data.obs_index).long(),
@@ -223,11 +227,11 @@ def test_the_probe_with_the_approach_check_executes_the_best_clear_action():
     import torch
     from synthetic import RuleWorld, synthetic_data
 
-    from w2e_ros.core.actions import encode_rotation
-    from w2e_ros.core.config import ModelConfig
-    from w2e_ros.core.evaluate import SuccessProbe
-    from w2e_ros.core.feasibility import approach_clear
-    from w2e_ros.core.model import W2EModel
+    from w2e_ros.core.exploration.evaluate import SuccessProbe
+    from w2e_ros.core.model.config import ModelConfig
+    from w2e_ros.core.model.network import W2EModel
+    from w2e_ros.core.robot.actions import encode_rotation
+    from w2e_ros.core.robot.feasibility import approach_clear
 
     torch.manual_seed(0)
     model = W2EModel(ModelConfig(num_points=256, sa_npoint=(64, 16, 8, 4))).eval()
@@ -256,8 +260,8 @@ def test_the_probe_with_the_approach_check_executes_the_best_clear_action():
 
 
 def test_validation_instances_are_neither_explored_nor_test():
-    from w2e_ros.core.categories import load_categories
-    from w2e_ros.core.evaluate import evaluation_targets
+    from w2e_ros.core.dataset.categories import load_categories
+    from w2e_ros.core.exploration.evaluate import evaluation_targets
 
     cats = load_categories()
     evaluation_instances = cats.evaluation_instances
@@ -274,7 +278,7 @@ def test_validation_instances_are_neither_explored_nor_test():
 
 
 def test_r_precision_depends_on_the_ranking_not_on_the_threshold():
-    from w2e_ros.core.metrics import fscore, r_precision
+    from w2e_ros.core.model.metrics import fscore, r_precision
 
     y = np.array([1, 0, 1, 0, 0, 0, 0, 0], bool)
     s = np.array([0.45, 0.8, 0.3, 0.2, 0.1, 0.1, 0.1, 0.1])

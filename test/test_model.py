@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from w2e_ros.core import model as model_module
-from w2e_ros.core.config import ModelConfig
-from w2e_ros.core.model import W2EModel, load_model, save_model
-from w2e_ros.core.pointnet2_geometry import (
+from w2e_ros.core.model import network as model_module
+from w2e_ros.core.model.config import ModelConfig
+from w2e_ros.core.model.network import W2EModel, load_model, save_model
+from w2e_ros.core.model.pointnet2_geometry import (
     farthest_point_sample,
     group_knn,
     index_points,
@@ -204,7 +204,7 @@ def test_network_flags_reach_the_model_config():
     """`--sa-npoint` / `--sa-radius` as typed become the run's ModelConfig; a radius <= 0 is
     refused before anything is trained."""
     from w2e_ros.cli import build_parser
-    from w2e_ros.core.settings import from_namespace
+    from w2e_ros.core.infra.settings import from_namespace
 
     a = build_parser().parse_args(["train", "--data", "d", "--sa-npoint", "1024", "256", "64",
                                    "16", "--sa-radius", "0.05", "0.1", "0.2", "0.4"])
@@ -227,7 +227,7 @@ def test_features_without_the_last_relu_are_signed_and_the_checkpoint_says_so(tm
     shipped pull model's features never fire): the same weights give the features before the
     ReLU, a checkpoint rebuilds the variant it was trained as, and the default is unchanged."""
     from w2e_ros.cli import build_parser
-    from w2e_ros.core.settings import from_namespace
+    from w2e_ros.core.infra.settings import from_namespace
 
     small = dict(num_points=256, sa_npoint=(64, 16, 8, 4))
     a = build_parser().parse_args(["train", "--data", "d", "--feat-activation", "none"])

@@ -1,5 +1,5 @@
-"""Success judged from clouds (w2e_ros.core.outcome) on real SAPIEN trials, the offline world's
-``outcome_source``, and the executor's ``outcome_source`` parameter over real nodes."""
+"""Success judged from clouds (w2e_ros.core.robot.outcome) on real SAPIEN trials, the offline
+world's ``outcome_source``, and the executor's ``outcome_source`` parameter over real nodes."""
 
 from __future__ import annotations
 
@@ -13,9 +13,9 @@ from waits import result_of
 
 from sim_bridge.objects import make_object
 from sim_bridge.world import ObjectWorld
-from w2e_ros.core.outcome import judge_clouds
-from w2e_ros.core.pointcloud import fps_indices
-from w2e_ros.core.primitives import Action
+from w2e_ros.core.robot.outcome import judge_clouds
+from w2e_ros.core.robot.pointcloud import fps_indices
+from w2e_ros.core.robot.primitives import Action
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -117,8 +117,8 @@ def test_clouds_that_cannot_be_judged_give_a_clear_error(drawer, opened):
 
 
 def test_offline_world_judges_from_clouds_when_asked(drawer):
-    from w2e_ros.core.outcome import apply_cloud_outcome
-    from w2e_ros.core.targets import Target
+    from w2e_ros.core.dataset.targets import Target
+    from w2e_ros.core.robot.outcome import apply_cloud_outcome
     from w2e_ros.experiments.sim_world import SimWorld
 
     with pytest.raises(ValueError, match="outcome_source must be one of"):
@@ -141,7 +141,7 @@ def test_offline_world_judges_from_clouds_when_asked(drawer):
 def test_collect_labels_from_clouds_and_keeps_old_manifests(tmp_path):
     import json
 
-    from w2e_ros.core.data import InteractionData
+    from w2e_ros.core.dataset.interactions import InteractionData
     from w2e_ros.experiments.collect import CollectConfig, collect
 
     base = CollectConfig(out="", categories=["cabinet"], observations=1, interactions=3,
@@ -161,11 +161,11 @@ def test_collect_labels_from_clouds_and_keeps_old_manifests(tmp_path):
 def test_exploration_runs_on_cloud_outcomes():
     import torch
 
-    from w2e_ros.core.config import ExploreConfig
-    from w2e_ros.core.explore import explore, explore_targets
-    from w2e_ros.core.finetune import W2EExplorer
-    from w2e_ros.core.model import W2EModel
-    from w2e_ros.core.strategies import get_strategy
+    from w2e_ros.core.exploration.config import ExploreConfig
+    from w2e_ros.core.exploration.explore import explore, explore_targets
+    from w2e_ros.core.exploration.finetune import W2EExplorer
+    from w2e_ros.core.exploration.strategies import get_strategy
+    from w2e_ros.core.model.network import W2EModel
     from w2e_ros.experiments.sim_world import SimWorld
 
     torch.manual_seed(0)

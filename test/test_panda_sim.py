@@ -18,8 +18,8 @@ from sim_bridge import panda as sim_panda
 from sim_bridge.objects import make_object
 from sim_bridge.physics import make_scene
 from sim_bridge.world import ObjectWorld
-from w2e_ros.core import kinematics as kin
-from w2e_ros.core.primitives import Action
+from w2e_ros.core.robot import kinematics as kin
+from w2e_ros.core.robot.primitives import Action
 
 FK_TOLERANCE_M = 1e-5  # float32 physics poses against float64 DH
 FK_TOLERANCE_RAD = 1e-5

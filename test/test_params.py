@@ -14,7 +14,7 @@ import pytest
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from w2e_ros.core.config import ExploreConfig, FinetuneConfig
+from w2e_ros.core.exploration.config import ExploreConfig, FinetuneConfig
 from w2e_ros.ros.params import (
     ParameterError,
     declare_typed_parameters,

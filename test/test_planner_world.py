@@ -17,7 +17,7 @@ import pytest
 from rclpy.time import Time
 from w2e_msgs.msg import InteractionOutcome, SegmentedObject
 
-from w2e_ros.core.primitives import Action
+from w2e_ros.core.robot.primitives import Action
 from w2e_ros.nodes.planner_node import RosWorld
 from w2e_ros.ros.pointcloud import arrays_to_cloud
 

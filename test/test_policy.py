@@ -1,11 +1,11 @@
-"""The manipulate policy (w2e_ros.core.policy): the ranking, the choice, what it says."""
+"""The manipulate policy (w2e_ros.core.model.policy): the ranking, the choice, what it says."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from w2e_ros.core.feasibility import DEFAULT_CHECK, Arm
-from w2e_ros.core.policy import ManipulatePolicy, best_first
+from w2e_ros.core.model.policy import ManipulatePolicy, best_first
+from w2e_ros.core.robot.feasibility import DEFAULT_CHECK, Arm
 
 
 def test_best_first_ranks_by_score_ties_in_order_and_disallowed_rows_last():

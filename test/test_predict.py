@@ -6,9 +6,9 @@ import numpy as np
 import torch
 from synthetic import synthetic_data
 
-from w2e_ros.core.config import ModelConfig
-from w2e_ros.core.model import W2EModel
-from w2e_ros.core.predict import FeatureCache, cloud_key, encoder_key, predict_interactions
+from w2e_ros.core.model.config import ModelConfig
+from w2e_ros.core.model.network import W2EModel
+from w2e_ros.core.model.predict import FeatureCache, cloud_key, encoder_key, predict_interactions
 
 SMALL = ModelConfig(num_points=256, sa_npoint=(64, 16, 8, 4))
 

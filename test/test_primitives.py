@@ -5,7 +5,7 @@ import pytest
 
 from sim_bridge.objects import make_object
 from sim_bridge.world import ObjectWorld
-from w2e_ros.core.primitives import Action
+from w2e_ros.core.robot.primitives import Action
 
 
 def first(category, word, instances=range(50)):

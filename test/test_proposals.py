@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from synthetic import synthetic_data
 
-from w2e_ros.core.pointcloud import protrusion
-from w2e_ros.core.proposals import DEFAULT_PROPOSAL, ProposalConfig, Proposer
+from w2e_ros.core.exploration.proposals import DEFAULT_PROPOSAL, ProposalConfig, Proposer
+from w2e_ros.core.robot.pointcloud import protrusion
 
 
 @pytest.fixture(scope="module")

@@ -28,7 +28,7 @@ from scenes import Tee
 from waits import wait_until
 
 from w2e_ros.bringup import Stack, random_model_args
-from w2e_ros.core.session_log import EVENTS, session_dir
+from w2e_ros.core.exploration.session_log import EVENTS, session_dir
 from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, ros_env
 
 pytestmark = pytest.mark.slow

@@ -10,7 +10,7 @@ import pytest
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import PointCloud2, PointField
 
-from w2e_ros.core.primitives import PRIMITIVES, Action, TrialResult
+from w2e_ros.core.robot.primitives import PRIMITIVES, Action, TrialResult
 from w2e_ros.ros.conversions import (
     action_to_interaction,
     from_pose,

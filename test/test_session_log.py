@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from w2e_ros.core.primitives import Action, TrialResult
-from w2e_ros.core.session_log import EVENTS, open_session, session_dir
+from w2e_ros.core.exploration.session_log import EVENTS, open_session, session_dir
+from w2e_ros.core.robot.primitives import Action, TrialResult
 
 
 def _interaction(k: int) -> tuple[Action, TrialResult, np.ndarray, np.ndarray]:

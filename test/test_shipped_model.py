@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from w2e_ros.core.model import load_model
-from w2e_ros.core.targets import Target
-from w2e_ros.core.viz import normal_maps
+from w2e_ros.core.dataset.targets import Target
+from w2e_ros.core.model.network import load_model
+from w2e_ros.core.model.viz import normal_maps
 from w2e_ros.experiments.sim_world import SimWorld
 from w2e_ros.paths import default_checkpoint
 
@@ -43,9 +43,9 @@ def test_shipped_full_data_reference_ranks_novel_interactions_better_than_the_ba
     kettles above the shipped base model, which never saw those categories."""
     import tempfile
 
-    from w2e_ros.core.data import InteractionData
-    from w2e_ros.core.metrics import auroc
-    from w2e_ros.core.predict import predict_interactions
+    from w2e_ros.core.dataset.interactions import InteractionData
+    from w2e_ros.core.model.metrics import auroc
+    from w2e_ros.core.model.predict import predict_interactions
     from w2e_ros.experiments.collect import CollectConfig, collect
     from w2e_ros.paths import checkpoint_dir
 

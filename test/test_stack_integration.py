@@ -23,7 +23,7 @@ from waits import wait_until
 from sim_bridge.objects import make_object
 from w2e_ros.bringup import Stack
 from w2e_ros.client import W2EClient
-from w2e_ros.core.model import W2EModel, load_model, save_model
+from w2e_ros.core.model.network import W2EModel, load_model, save_model
 from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, ros_env
 from w2e_ros.ros.qos import RELIABLE_QOS
 

@@ -16,8 +16,8 @@ import pytest
 import rclpy
 from rclpy.node import Node
 
-from w2e_ros.core.primitives import Action, TrialResult
-from w2e_ros.core.session_log import open_session
+from w2e_ros.core.exploration.session_log import open_session
+from w2e_ros.core.robot.primitives import Action, TrialResult
 from w2e_ros.ros.params import ParameterError
 from w2e_ros.ros.processes import (
     clean_shm_at_exit,

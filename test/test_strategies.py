@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from w2e_ros.core.selection import allocate, success_weights
-from w2e_ros.core.strategies import STRATEGIES, Scored, get_strategy
+from w2e_ros.core.exploration.selection import allocate, success_weights
+from w2e_ros.core.exploration.strategies import STRATEGIES, Scored, get_strategy
 
 
 def _scored() -> list[Scored]:

@@ -11,13 +11,12 @@ import pytest
 import torch
 from synthetic import synthetic_data
 
-from w2e_ros.core.actions import encode_rotation
-from w2e_ros.core.config import ModelConfig, TrainConfig
-from w2e_ros.core.data import InteractionData
-from w2e_ros.core.metrics import auroc
-from w2e_ros.core.model import load_model
-from w2e_ros.core.predict import predict_interactions
-from w2e_ros.core.training import (
+from w2e_ros.core.dataset.interactions import InteractionData
+from w2e_ros.core.model.config import ModelConfig, TrainConfig
+from w2e_ros.core.model.metrics import auroc
+from w2e_ros.core.model.network import load_model
+from w2e_ros.core.model.predict import predict_interactions
+from w2e_ros.core.model.training import (
     BalancedSampler,
     RunningAccuracy,
     Trainer,
@@ -28,6 +27,7 @@ from w2e_ros.core.training import (
     train,
     training_losses,
 )
+from w2e_ros.core.robot.actions import encode_rotation
 
 torch.set_num_threads(2)
 SMALL = ModelConfig(num_points=256, sa_npoint=(64, 16, 8, 4))
@@ -67,7 +67,7 @@ def test_running_accuracy_counts_every_prediction_including_the_current_one():
 
 
 def test_affordance_head_gets_no_gradient_from_other_sim_categories(data):
-    model = __import__("w2e_ros.core.model", fromlist=["W2EModel"]).W2EModel(SMALL)
+    model = __import__("w2e_ros.core.model.network", fromlist=["W2EModel"]).W2EModel(SMALL)
     rows = np.flatnonzero(data.interaction_category != "cabinet")[:40]
     batch = make_batch(data, rows, ("cabinet",), ("cabinet", "faucet", "window"), CPU)
     assert not batch.aff_mask.any() and batch.sim_mask.all()
@@ -84,7 +84,7 @@ def test_affordance_head_gets_no_gradient_from_other_sim_categories(data):
 
 
 def test_affordance_loss_only_counts_c_aff_interactions(data):
-    model = __import__("w2e_ros.core.model", fromlist=["W2EModel"]).W2EModel(SMALL)
+    model = __import__("w2e_ros.core.model.network", fromlist=["W2EModel"]).W2EModel(SMALL)
     rows = np.arange(data.num_interactions)[::3]
     batch = make_batch(data, rows, ("cabinet",), ("cabinet", "faucet", "window"), CPU)
     assert batch.aff_mask.any() and not batch.aff_mask.all()
@@ -102,7 +102,7 @@ def test_affordance_loss_only_counts_c_aff_interactions(data):
 
 
 def test_similarity_target_is_the_running_accuracy(data):
-    model = __import__("w2e_ros.core.model", fromlist=["W2EModel"]).W2EModel(SMALL).train()
+    model = __import__("w2e_ros.core.model.network", fromlist=["W2EModel"]).W2EModel(SMALL).train()
     rows = np.arange(0, data.num_interactions, 5)
     batch = make_batch(data, rows, ("cabinet",), ("cabinet", "faucet", "window"), CPU)
     acc = RunningAccuracy(data.num_interactions)
@@ -181,7 +181,7 @@ def test_training_on_simulated_interactions_reduces_the_loss(tmp_path):
 
     collect(CollectConfig(out=str(tmp_path / "data"), categories=["cabinet", "faucet", "window"],
                           observations=2, interactions=24, primitives=("push",), workers=1))
-    from w2e_ros.core.training import load_training_data
+    from w2e_ros.core.model.training import load_training_data
 
     data = load_training_data(tmp_path / "data", "w2e", "cfw", "push")
     assert data.points.shape[1:] == (2048, 3) and data.success.any()
@@ -258,7 +258,7 @@ def test_sampler_without_affordance_categories_draws_categories_equally(data):
 @pytest.mark.parametrize("sim_loss", ["bce", "l1"])
 def test_similarity_loss_is_bce_or_l1_to_the_running_accuracy(data, sim_loss):
     torch.manual_seed(0)
-    model = __import__("w2e_ros.core.model", fromlist=["W2EModel"]).W2EModel(SMALL)
+    model = __import__("w2e_ros.core.model.network", fromlist=["W2EModel"]).W2EModel(SMALL)
     rows = np.flatnonzero(data.interaction_category != "cabinet")[:30]  # C_sim only
     batch = make_batch(data, rows, ("cabinet",), ("cabinet", "faucet", "window"), CPU)
     with torch.no_grad():
@@ -295,7 +295,7 @@ def test_validator_scores_held_out_instances_of_the_training_categories(val_data
     assert set(v.groups) == {"caff", "csim", "novel"}
     assert int(v.groups["novel"].sum()) == 2 * 24
     torch.manual_seed(0)
-    model = __import__("w2e_ros.core.model", fromlist=["W2EModel"]).W2EModel(SMALL)
+    model = __import__("w2e_ros.core.model.network", fromlist=["W2EModel"]).W2EModel(SMALL)
     out = v.run(model)
     aff, _ = predict_interactions(model, v.data)
     cats = v.data.interaction_category
@@ -352,7 +352,7 @@ def test_train_stops_when_validation_levels_off(tmp_path, data, val_data):
 
 
 def test_patience_cannot_stop_a_curve_that_still_rises():
-    from w2e_ros.core.training import still_rising
+    from w2e_ros.core.model.training import still_rising
 
     rng = np.random.default_rng(0)
     # a noisy climb: no new best in the last few checks, yet the trend is up
@@ -376,10 +376,10 @@ def test_trainer_levels_off_only_without_a_new_best_and_without_a_rise(data):
 
 
 def test_calibration_refits_only_the_similarity_head_to_the_final_correctness(data):
-    from w2e_ros.core.training import calibrate_similarity
+    from w2e_ros.core.model.training import calibrate_similarity
 
     torch.manual_seed(0)
-    model = __import__("w2e_ros.core.model", fromlist=["W2EModel"]).W2EModel(SMALL)
+    model = __import__("w2e_ros.core.model.network", fromlist=["W2EModel"]).W2EModel(SMALL)
     before = {k: v.clone() for k, v in model.state_dict().items()}
     stats = calibrate_similarity(model, data, ("cabinet", "faucet", "window"), steps=80,
                                  batch=64)
@@ -399,8 +399,8 @@ def test_replay_pack_samples_each_primitive_keeps_only_its_clouds_and_the_cli_wr
     import subprocess
     import sys
 
-    from w2e_ros.core.model import W2EModel, save_model
-    from w2e_ros.core.training import REPLAY_PACK, replay_pack
+    from w2e_ros.core.model.network import W2EModel, save_model
+    from w2e_ros.core.model.training import REPLAY_PACK, replay_pack
 
     data = InteractionData.concat([
         synthetic_data(obs_per_cat=5, per_obs=40, primitive="push"),
@@ -444,7 +444,7 @@ def test_w2e_calibrate_balanced_lowers_the_similarity_where_successes_are_missed
     import subprocess
     import sys
 
-    from w2e_ros.core.model import W2EModel, load_model, save_model
+    from w2e_ros.core.model.network import W2EModel, load_model, save_model
 
     data = synthetic_data(obs_per_cat=6, per_obs=48, primitive="pull", seed=4)
     assert 0.05 < data.success.mean() < 0.4
@@ -507,7 +507,7 @@ def test_w2e_calibrate_gives_a_where2act_model_a_similarity_on_its_training_cate
     import subprocess
     import sys
 
-    from w2e_ros.core.model import W2EModel, load_model, save_model
+    from w2e_ros.core.model.network import W2EModel, load_model, save_model
 
     data = synthetic_data(obs_per_cat=4, per_obs=32, seed=5)
     data.save_shard(tmp_path / "train" / "shard-00000.npz")
@@ -537,7 +537,7 @@ def test_w2e_calibrate_combo_retargets_a_model_to_a_combination_with_the_same_c_
     import subprocess
     import sys
 
-    from w2e_ros.core.model import W2EModel, load_model, save_model
+    from w2e_ros.core.model.network import W2EModel, load_model, save_model
 
     data = InteractionData.concat([
         synthetic_data(categories=("cabinet", "faucet", "window"), obs_per_cat=3, per_obs=24,
@@ -577,7 +577,7 @@ def test_w2e_calibrate_combo_retargets_a_model_to_a_combination_with_the_same_c_
 def test_yaw_augmentation_turns_clouds_and_their_actions_together(data):
     """Each cloud and the actions on it turn by the same angle about the vertical: heights,
     distances and every action's angle to the cloud's geometry are kept, labels untouched."""
-    from w2e_ros.core.training import rotate_yaw
+    from w2e_ros.core.model.training import rotate_yaw
 
     t = Trainer(_cfg(), data, SMALL, device=CPU)
     b = t.next_batch()

@@ -7,7 +7,7 @@ from sim_bridge.geometry import box_mesh, sapien_to_pose
 from sim_bridge.physics import build_object, make_scene
 from sim_bridge.urdf_loader import load_partnet, read_obj
 from sim_bridge.world import ObjectWorld
-from w2e_ros.core.primitives import Action
+from w2e_ros.core.robot.primitives import Action
 
 
 def write_boxes(path, boxes):

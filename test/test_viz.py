@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 from PIL import Image
 
-from w2e_ros.core.viz import heatmap_figure, write_figure
+from w2e_ros.core.model.viz import heatmap_figure, write_figure
 
 
 def _figure():

@@ -137,7 +137,7 @@ def random_model_args(out_dir: Path) -> list[str]:
     bench/load.py) measure messages, not learning."""
     import torch  # the model's weights: not needed to bring a stack up
 
-    from w2e_ros.core.model import W2EModel, save_model
+    from w2e_ros.core.model.network import W2EModel, save_model
 
     args = []
     for seed, prim in enumerate(("push", "pull")):
@@ -294,7 +294,7 @@ class Stack:
         bridge's base pose, serves follow_waypoints; settings that cannot work with it fail
         here, before anything starts, all named at once (a bring-up that waited for a
         follow_waypoints nobody serves hung for its whole timeout)."""
-        from w2e_ros.core.kinematics import DEFAULT_BASE_POSE  # numpy, scipy: not at import
+        from w2e_ros.core.robot.kinematics import DEFAULT_BASE_POSE  # numpy, scipy: not at import
 
         missing = []
         # one base for the simulated arm, the adapter's plans and the planner's reach check

@@ -15,16 +15,11 @@ import sys
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from w2e_ros.core.allocator import keep_freed_memory
-from w2e_ros.core.config import (
-    NETWORK_FLAGS,
-    ExploreConfig,
-    ModelConfig,
-    TrainConfig,
-    combinations,
-)
-from w2e_ros.core.settings import add_arguments, from_namespace
-from w2e_ros.core.strategies import STRATEGIES
+from w2e_ros.core.exploration.config import ExploreConfig
+from w2e_ros.core.exploration.strategies import STRATEGIES
+from w2e_ros.core.infra.allocator import keep_freed_memory
+from w2e_ros.core.infra.settings import add_arguments, from_namespace
+from w2e_ros.core.model.config import NETWORK_FLAGS, ModelConfig, TrainConfig, combinations
 from w2e_ros.experiments.config import (
     BenchmarkConfig,
     CollectConfig,
@@ -114,8 +109,8 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
 def _run_train(a: argparse.Namespace) -> int:
     import math
 
-    from w2e_ros.core.data import InteractionData
-    from w2e_ros.core.training import load_training_data, run_name, train
+    from w2e_ros.core.dataset.interactions import InteractionData
+    from w2e_ros.core.model.training import load_training_data, run_name, train
 
     steps = a.steps
     if steps is None and a.epochs is not None:
@@ -142,7 +137,7 @@ _RUN_SETTINGS = ("budget", "seed", "snapshot_budgets")
 def _add_explore_args(p: argparse.ArgumentParser, skip: tuple[str, ...] = _RUN_SETTINGS) -> None:
     """The few-shot loop's settings (ExploreConfig and its FinetuneConfig), shared by
     ``fewshot``, ``learnability`` and ``benchmark``: one flag per setting, named, typed,
-    defaulted and explained by the dataclass field (w2e_ros.core.settings)."""
+    defaulted and explained by the dataclass field (w2e_ros.core.infra.settings)."""
     add_arguments(p, ExploreConfig, skip)
 
 
@@ -177,12 +172,12 @@ def _run_fewshot(a: argparse.Namespace) -> int:
 
     import torch
 
-    from w2e_ros.core.categories import load_categories
-    from w2e_ros.core.data import InteractionData
-    from w2e_ros.core.explore import fewshot
-    from w2e_ros.core.model import load_model, save_model
-    from w2e_ros.core.strategies import get_strategy
-    from w2e_ros.core.training import replay_data
+    from w2e_ros.core.dataset.categories import load_categories
+    from w2e_ros.core.dataset.interactions import InteractionData
+    from w2e_ros.core.exploration.explore import fewshot
+    from w2e_ros.core.exploration.strategies import get_strategy
+    from w2e_ros.core.model.network import load_model, save_model
+    from w2e_ros.core.model.training import replay_data
     from w2e_ros.experiments.sim_world import SimWorld
 
     torch.set_num_threads(a.threads)
@@ -267,14 +262,14 @@ def _run_evaluate(a: argparse.Namespace) -> int:
 
     import torch
 
-    from w2e_ros.core.categories import load_categories
-    from w2e_ros.core.data import InteractionData
-    from w2e_ros.core.evaluate import (
+    from w2e_ros.core.dataset.categories import load_categories
+    from w2e_ros.core.dataset.interactions import InteractionData
+    from w2e_ros.core.exploration.evaluate import (
         SuccessProbe,
         evaluate,
         evaluation_targets,
     )
-    from w2e_ros.core.model import load_model
+    from w2e_ros.core.model.network import load_model
     from w2e_ros.experiments.sim_world import SimWorld
 
     torch.set_num_threads(a.threads)
@@ -449,8 +444,8 @@ def _run_calibrate(a: argparse.Namespace) -> int:
 
     import torch
 
-    from w2e_ros.core.model import load_model, save_model
-    from w2e_ros.core.training import (
+    from w2e_ros.core.model.network import load_model, save_model
+    from w2e_ros.core.model.training import (
         calibrate_similarity,
         load_training_data,
         method_categories,
@@ -501,9 +496,9 @@ def _add_replay_pack(sub: argparse._SubParsersAction) -> None:
 def _run_replay_pack(a: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from w2e_ros.core.data import InteractionData
-    from w2e_ros.core.model import load_model
-    from w2e_ros.core.training import replay_pack
+    from w2e_ros.core.dataset.interactions import InteractionData
+    from w2e_ros.core.model.network import load_model
+    from w2e_ros.core.model.training import replay_pack
 
     if not 0 < a.fraction <= 1:
         raise ValueError(f"--fraction must be in (0, 1], got {a.fraction}")

@@ -43,7 +43,7 @@ from w2e_msgs.action import Explore as ExploreAction
 from w2e_msgs.msg import ExplorationProgress, Interaction, SceneObject, SegmentedObjects
 from w2e_msgs.srv import LoadScene, Manipulate, PredictMaps
 
-from w2e_ros.core.config import ExploreConfig
+from w2e_ros.core.exploration.config import ExploreConfig
 from w2e_ros.ros.action_client import LockedActionClient
 from w2e_ros.ros.futures import StackError, WaitTimeoutError, wait_future
 from w2e_ros.ros.peers import PeerWatch

@@ -21,9 +21,9 @@ import sys
 import time
 from pathlib import Path
 
-from w2e_ros.core.categories import load_categories
-from w2e_ros.core.config import ExploreConfig
-from w2e_ros.core.strategies import STRATEGIES
+from w2e_ros.core.dataset.categories import load_categories
+from w2e_ros.core.exploration.config import ExploreConfig
+from w2e_ros.core.exploration.strategies import STRATEGIES
 from w2e_ros.paths import default_checkpoint
 
 READY_TIMEOUT_S = 180.0  # bring-up: the nodes, then their services
@@ -73,8 +73,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def _heatmaps(client, category: str, instance: int, primitive: str, out: Path,
               tag: str) -> Path:
     """Load one test instance alone, get its maps from the inference node, draw them."""
-    from w2e_ros.core.targets import stable_seed
-    from w2e_ros.core.viz import heatmap_figure
+    from w2e_ros.core.dataset.targets import stable_seed
+    from w2e_ros.core.model.viz import heatmap_figure
 
     t = client.now_s()
     (oid,) = client.load_scene(category, [instance], seeds=[stable_seed("demo", instance)])

@@ -27,7 +27,7 @@ from collections.abc import Callable, Iterator, Sequence
 from functools import partial
 from typing import Any, TypeVar
 
-from w2e_ros.core.allocator import keep_freed_memory
+from w2e_ros.core.infra.allocator import keep_freed_memory
 
 log = logging.getLogger("w2e.backends")
 

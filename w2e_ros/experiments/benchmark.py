@@ -34,20 +34,20 @@ from typing import Any
 import numpy as np
 import torch
 
-from w2e_ros.core.categories import load_categories
-from w2e_ros.core.config import SETTINGS_RENAMED, ExploreConfig
-from w2e_ros.core.data import InteractionData
-from w2e_ros.core.evaluate import (
+from w2e_ros.core.dataset.categories import load_categories
+from w2e_ros.core.dataset.interactions import InteractionData
+from w2e_ros.core.exploration.config import SETTINGS_RENAMED, ExploreConfig
+from w2e_ros.core.exploration.evaluate import (
     SuccessProbe,
     evaluation_targets,
     predict_interactions,
 )
-from w2e_ros.core.explore import fewshot
-from w2e_ros.core.metrics import auroc, average_precision, fscore, r_precision
-from w2e_ros.core.model import W2EModel, load_model
-from w2e_ros.core.settings import flatten, nest
-from w2e_ros.core.strategies import STRATEGIES, get_strategy
-from w2e_ros.core.training import replay_data
+from w2e_ros.core.exploration.explore import fewshot
+from w2e_ros.core.exploration.strategies import STRATEGIES, get_strategy
+from w2e_ros.core.infra.settings import flatten, nest
+from w2e_ros.core.model.metrics import auroc, average_precision, fscore, r_precision
+from w2e_ros.core.model.network import W2EModel, load_model
+from w2e_ros.core.model.training import replay_data
 from w2e_ros.experiments.backends import Backend, LocalBackend, resolve
 from w2e_ros.experiments.config import BENCHMARK_DROPPED, BENCHMARK_RENAMED, BenchmarkConfig
 
@@ -323,7 +323,7 @@ def merge_predictions(out: str | Path, sources: list[str | Path]) -> list[Path]:
 
 def _heatmaps(out: Path, prim: str, combo: str, world: Any, cats: list[str],
               models: dict[str, dict[int, W2EModel]], cfg: BenchmarkConfig) -> None:
-    from w2e_ros.core.viz import heatmap_figure, normal_maps
+    from w2e_ros.core.model.viz import heatmap_figure, normal_maps
 
     for c in cats[:3]:
         target = evaluation_targets([c], 1, validate=cfg.validate,
@@ -524,7 +524,7 @@ def summarize(out: str | Path, cfg: BenchmarkConfig,
     can join a combination whose other runs are known only from the summary (it then has no
     paired rows against them). With more than one combination,
     rows ``combination: mean`` hold the mean over them (:func:`mean_over_combinations`)."""
-    from w2e_ros.core.viz import metric_curves
+    from w2e_ros.core.model.viz import metric_curves
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)  # a table of included summaries alone is new

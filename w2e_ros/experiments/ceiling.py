@@ -22,10 +22,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from w2e_ros.core.config import ModelConfig, TrainConfig
-from w2e_ros.core.data import InteractionData
-from w2e_ros.core.metrics import auroc, classification_metrics
-from w2e_ros.core.primitives import Action
+from w2e_ros.core.dataset.interactions import InteractionData
+from w2e_ros.core.model.config import ModelConfig, TrainConfig
+from w2e_ros.core.model.metrics import auroc, classification_metrics
+from w2e_ros.core.robot.primitives import Action
 from w2e_ros.experiments.config import LabelCheckConfig, OracleConfig
 
 log = logging.getLogger("w2e.ceiling")
@@ -89,7 +89,7 @@ class _StoredTrial:
     """One stored trial, ready to be executed again as it was or perturbed."""
 
     def __init__(self, data: InteractionData, r: int) -> None:
-        from w2e_ros.core.targets import Target
+        from w2e_ros.core.dataset.targets import Target
 
         o = int(data.obs_index[r])
         self.target = Target(str(data.category[o]), int(data.instance[o]), int(data.obs_seed[o]))
@@ -231,7 +231,7 @@ def summarize_oracle(trials: list[dict], radii: tuple[float, ...], boot: int = 3
     """Per primitive: the local oracle's AUROC per category, their mean and the pooled AUROC
     (the novel-category form; its category mix is the sample's, not the data's), with 95 %
     intervals resampling trials."""
-    from w2e_ros.core.metrics import bootstrap_ci
+    from w2e_ros.core.model.metrics import bootstrap_ci
 
     out: dict = {}
     for prim in sorted({t["primitive"] for t in trials}):
@@ -327,9 +327,9 @@ def head_fit(cfg: FitTestConfig, sub: InteractionData) -> tuple[list[dict], np.n
     Returns the curve and the final probabilities."""
     import torch.nn.functional as F
 
-    from w2e_ros.core.actions import encode_rotation
-    from w2e_ros.core.model import ActionHead, W2EModel, load_model
-    from w2e_ros.core.predict import encode_clouds
+    from w2e_ros.core.model.network import ActionHead, W2EModel, load_model
+    from w2e_ros.core.model.predict import encode_clouds
+    from w2e_ros.core.robot.actions import encode_rotation
 
     torch.manual_seed(cfg.seed)
     if cfg.frozen_encoder == "random":
@@ -366,8 +366,8 @@ def end_to_end_fit(cfg: FitTestConfig, sub: InteractionData,
     copies), scored every ``eval_every`` steps on the rows it trained on."""
     from tqdm import tqdm
 
-    from w2e_ros.core.predict import predict_interactions
-    from w2e_ros.core.training import Trainer
+    from w2e_ros.core.model.predict import predict_interactions
+    from w2e_ros.core.model.training import Trainer
 
     tcfg = TrainConfig(method=cfg.method, combo=cfg.combo, primitive=cfg.primitive,
                        steps=cfg.steps, seed=cfg.seed, **cfg.train)
@@ -390,7 +390,7 @@ def fit_test(cfg: FitTestConfig, progress: bool = True) -> dict:
     """Fit ``cfg.interactions`` training interactions (end to end, or a head on frozen
     features) and score the model on exactly those rows (flipped copies aside): the question
     is only whether it can fit them. Writes ``fit.json`` under ``cfg.out``."""
-    from w2e_ros.core.training import load_training_data
+    from w2e_ros.core.model.training import load_training_data
 
     data = load_training_data(cfg.data, cfg.method, cfg.combo, cfg.primitive)
     sub = fit_subset(data, cfg.interactions, cfg.seed)

@@ -17,7 +17,7 @@ The shards' jobs run on a :mod:`w2e_ros.experiments.backends` backend: local pro
 return their data and this process writes every shard, so the files are the same either way.
 
 ``--outcome-source clouds`` labels success as a robot without joint sensors would, from the
-object's camera cloud before and after each trial (:mod:`w2e_ros.core.outcome`); the default
+object's camera cloud before and after each trial (:mod:`w2e_ros.core.robot.outcome`); the default
 ``joints`` uses the simulator's joint states. The ``motion`` column is the simulator's joint
 motion either way.
 """
@@ -35,11 +35,11 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from w2e_ros.core.categories import load_categories
-from w2e_ros.core.data import InteractionData
-from w2e_ros.core.primitives import Action, TrialResult
-from w2e_ros.core.proposals import ProposalConfig, Proposer
-from w2e_ros.core.targets import Target, stable_seed
+from w2e_ros.core.dataset.categories import load_categories
+from w2e_ros.core.dataset.interactions import InteractionData
+from w2e_ros.core.dataset.targets import Target, stable_seed
+from w2e_ros.core.exploration.proposals import ProposalConfig, Proposer
+from w2e_ros.core.robot.primitives import Action, TrialResult
 from w2e_ros.experiments.backends import Backend, LocalBackend
 from w2e_ros.experiments.config import CollectConfig
 from w2e_ros.experiments.sim_world import Cloud, SimWorld

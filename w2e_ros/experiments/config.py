@@ -1,15 +1,17 @@
 """The settings of the simulator experiments that the command line takes as flags (one flag per
-field, ``w2e_ros.core.settings``), kept free of heavy imports so ``w2e --help`` stays instant."""
+field, ``w2e_ros.core.infra.settings``), kept free of heavy imports so ``w2e --help`` stays
+instant."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from w2e_ros.core.categories import SPLITS
-from w2e_ros.core.config import LEARNABILITY_SELECTIONS, ExploreConfig, combinations
-from w2e_ros.core.primitives import BASE_PRIMITIVES
-from w2e_ros.core.settings import REQUIRED, setting
-from w2e_ros.core.strategies import STRATEGIES
+from w2e_ros.core.dataset.categories import SPLITS
+from w2e_ros.core.exploration.config import LEARNABILITY_SELECTIONS, ExploreConfig
+from w2e_ros.core.exploration.strategies import STRATEGIES
+from w2e_ros.core.infra.settings import REQUIRED, setting
+from w2e_ros.core.model.config import combinations
+from w2e_ros.core.robot.primitives import BASE_PRIMITIVES
 
 
 @dataclass
@@ -34,7 +36,7 @@ class CollectConfig:
     workers: int = setting(2, "parallel worker processes (local backend)")
     obs_per_shard: int = setting(8, "observations per shard file")
     seed: int = setting(0, "seed of the objects, states, cameras and actions")
-    # w2e_ros.core.outcome.OUTCOME_SOURCES
+    # w2e_ros.core.robot.outcome.OUTCOME_SOURCES
     outcome_source: str = setting("joints", "judge success from the simulator's joint states, "
                                   "or from the object's camera clouds before and after each "
                                   "trial, as a real robot does", choices=("joints", "clouds"))

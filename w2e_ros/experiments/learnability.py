@@ -37,15 +37,15 @@ from pathlib import Path
 
 import numpy as np
 
-from w2e_ros.core.categories import load_categories
-from w2e_ros.core.config import LEARNABILITY_SELECTIONS
-from w2e_ros.core.data import InteractionData
-from w2e_ros.core.finetune import W2EExplorer, similarity_is_balanced, trains_similarity
-from w2e_ros.core.metrics import auroc, classification_metrics, within_class_auroc
-from w2e_ros.core.model import W2EModel, load_model
-from w2e_ros.core.predict import predict_interactions
-from w2e_ros.core.strategies import Scored, get_strategy
-from w2e_ros.core.training import replay_data
+from w2e_ros.core.dataset.categories import load_categories
+from w2e_ros.core.dataset.interactions import InteractionData
+from w2e_ros.core.exploration.config import LEARNABILITY_SELECTIONS
+from w2e_ros.core.exploration.finetune import W2EExplorer, similarity_is_balanced, trains_similarity
+from w2e_ros.core.exploration.strategies import Scored, get_strategy
+from w2e_ros.core.model.metrics import auroc, classification_metrics, within_class_auroc
+from w2e_ros.core.model.network import W2EModel, load_model
+from w2e_ros.core.model.predict import predict_interactions
+from w2e_ros.core.model.training import replay_data
 from w2e_ros.experiments.config import LearnabilityConfig
 
 log = logging.getLogger("w2e.learnability")
@@ -211,7 +211,7 @@ def run_per_category(cfg: LearnabilityConfig) -> dict:
     """The curve of each novel category on its own (the paper's per-category setting):
     ``out/<category>/`` as ``run_learnability`` writes it, plus ``per_category.md`` /
     ``.json`` with every category's metrics against N side by side."""
-    from w2e_ros.core.viz import per_category_figure
+    from w2e_ros.core.model.viz import per_category_figure
 
     out = Path(cfg.out)
     model_meta = load_model(cfg.model)[1]
@@ -280,7 +280,7 @@ def _paired_lines(rows: list[dict], selections: Sequence[str]) -> list[str]:
 
 
 def _summarize(rows: list[dict], refs: dict, cfg: LearnabilityConfig, prim: str) -> dict:
-    from w2e_ros.core.viz import learnability_figure
+    from w2e_ros.core.model.viz import learnability_figure
 
     out = Path(cfg.out)
     metrics = ("fscore", "auroc", "ap", "valid_auroc", "simcorr_auroc", "picked_success")

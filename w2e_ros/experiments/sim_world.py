@@ -1,14 +1,14 @@
 """The simulator as the exploration loop's world, for the offline commands.
 
-A target (:class:`w2e_ros.core.targets.Target`) is an object instance in a start state; the
+A target (:class:`w2e_ros.core.dataset.targets.Target`) is an object instance in a start state; the
 ROS planner has its own world (the executor and bridge nodes) behind the same two calls,
 ``observe`` and ``execute``.
 
 ``outcome_source`` says how a trial's success is judged: ``joints`` (default) by the
-simulator's joint states (:func:`w2e_ros.core.primitives.judge_motion`), ``clouds`` as a
+simulator's joint states (:func:`w2e_ros.core.robot.primitives.judge_motion`), ``clouds`` as a
 robot without joint sensors judges it, from the object's camera cloud before the trial (the
 observation the action was chosen on) and after it (the same camera, the object in the state
-the trial left it in, sampled anew) with :func:`w2e_ros.core.outcome.judge_clouds`. Validity
+the trial left it in, sampled anew) with :func:`w2e_ros.core.robot.outcome.judge_clouds`. Validity
 (contact at the first step, a push touching another part) stays the simulator's.
 """
 
@@ -18,8 +18,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from w2e_ros.core.categories import load_categories
-from w2e_ros.core.outcome import (
+from w2e_ros.core.dataset.categories import load_categories
+from w2e_ros.core.dataset.targets import Target, stable_seed
+from w2e_ros.core.robot.outcome import (
     DEFAULT_JUDGE,
     OUTCOME_SOURCES,
     CloudJudgeConfig,
@@ -27,9 +28,8 @@ from w2e_ros.core.outcome import (
     apply_cloud_outcome,
     judge_clouds,
 )
-from w2e_ros.core.pointcloud import fps_indices
-from w2e_ros.core.primitives import Action, TrialResult
-from w2e_ros.core.targets import Target, stable_seed
+from w2e_ros.core.robot.pointcloud import fps_indices
+from w2e_ros.core.robot.primitives import Action, TrialResult
 
 
 @dataclass

@@ -3,11 +3,12 @@
 It is the robot side for a real arm, in the simulator bridge's place: it serves the same
 ``follow_waypoints`` action (w2e_msgs/FollowWaypoints), so the executor and everything above it
 are unchanged (point the executor's ``robot_action`` at it, or run it instead of the bridge).
-For each goal it plans the whole motion first (:func:`w2e_ros.core.kinematics.plan_trajectory`:
-IK within the joint limits and the workspace box, straight moves cut into 1 cm pieces, times
-within the scaled velocity limits) and refuses an unreachable one with the reason before
-anything moves. The plan is published for RViz on ``planned_path`` (nav_msgs/Path of wrist
-poses) and ``planned_trajectory`` (trajectory_msgs/JointTrajectory).
+For each goal it plans the whole motion first
+(:func:`w2e_ros.core.robot.kinematics.plan_trajectory`: IK within the joint limits and the
+workspace box, straight moves cut into 1 cm pieces, times within the scaled velocity limits)
+and refuses an unreachable one with the reason before anything moves. The plan is published
+for RViz on ``planned_path`` (nav_msgs/Path of wrist poses) and ``planned_trajectory``
+(trajectory_msgs/JointTrajectory).
 
 With ``dry_run`` (the default) that is all: the result says the motion was planned and not
 executed (``valid`` false, so no outcome is learned from it). Otherwise the trajectory goes, in
@@ -43,7 +44,7 @@ from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from w2e_msgs.action import FollowWaypoints
 
-from w2e_ros.core import kinematics as kin
+from w2e_ros.core.robot import kinematics as kin
 from w2e_ros.ros.conversions import from_pose, to_pose
 from w2e_ros.ros.gripper import GRIPPER_INTERFACES, GripperActions
 from w2e_ros.ros.params import ParameterError, declare_typed_parameters, describe, param

@@ -1,7 +1,7 @@
 """The gripper executor: one Interaction in, the robot's waypoint trajectory out, an outcome back.
 
 Action server ``execute_interaction`` (w2e_msgs/ExecuteInteraction). For each goal it turns
-the interaction into its primitive's wrist waypoints (``w2e_ros.core.primitives``: start
+the interaction into its primitive's wrist waypoints (``w2e_ros.core.robot.primitives``: start
 0.15 m behind the point along ``up``, ...; :mod:`w2e_ros.ros.waypoints`), drives the robot side's
 ``follow_waypoints`` action (the sim bridge, or a Panda adapter), and judges the outcome from
 what the robot measured, so simulated and real trials are judged alike. Feedback names the
@@ -10,10 +10,10 @@ phase: planning, then each waypoint's phase (approach, grasp, pull / push ...), 
 ``outcome_source`` says what success is judged from:
 
 * ``joints`` (default): the object's joint states before and after, as the robot side
-  reports them (the simulator; :func:`w2e_ros.core.primitives.judge_motion`).
+  reports them (the simulator; :func:`w2e_ros.core.robot.primitives.judge_motion`).
 * ``clouds``: the object's segmented cloud (``objects``, w2e_msgs/SegmentedObjects from the
   segmentation node) in a frame taken before the interaction and in one taken after it
-  (:func:`w2e_ros.core.outcome.judge_clouds`), as on a real object without joint sensors.
+  (:func:`w2e_ros.core.robot.outcome.judge_clouds`), as on a real object without joint sensors.
   The object is the interaction's ``object_id`` (0: the segmented object nearest the
   contact). Validity (contact at the start, the robot could not follow) stays the robot
   side's; an interaction whose clouds cannot be judged (no fresh frame, clouds in different
@@ -40,14 +40,14 @@ from visualization_msgs.msg import MarkerArray
 from w2e_msgs.action import ExecuteInteraction, FollowWaypoints
 from w2e_msgs.msg import InteractionOutcome, SegmentedObjects
 
-from w2e_ros.core.outcome import (
+from w2e_ros.core.robot.outcome import (
     DEFAULT_JUDGE,
     OUTCOME_SOURCES,
     CloudOutcome,
     apply_cloud_outcome,
     judge_clouds,
 )
-from w2e_ros.core.primitives import Action, TrialResult
+from w2e_ros.core.robot.primitives import Action, TrialResult
 from w2e_ros.ros.action_client import LockedActionClient
 from w2e_ros.ros.conversions import (
     from_xyz,

@@ -35,14 +35,14 @@ from std_srvs.srv import Trigger
 from w2e_msgs.msg import AffordanceMap, Interaction
 from w2e_msgs.srv import PredictMaps, UpdateModel
 
-from w2e_ros.core.allocator import keep_freed_memory
-from w2e_ros.core.config import FinetuneConfig
-from w2e_ros.core.explore import Candidates, Executed, map_candidates
-from w2e_ros.core.finetune import W2EExplorer, similarity_is_balanced
-from w2e_ros.core.model import W2EModel, default_device, load_model, save_model
-from w2e_ros.core.pointcloud import check_cloud, fps_indices
-from w2e_ros.core.policy import best_first, score_map
-from w2e_ros.core.primitives import BASE_PRIMITIVES, PRIMITIVES, Action
+from w2e_ros.core.exploration.config import FinetuneConfig
+from w2e_ros.core.exploration.explore import Candidates, Executed, map_candidates
+from w2e_ros.core.exploration.finetune import W2EExplorer, similarity_is_balanced
+from w2e_ros.core.infra.allocator import keep_freed_memory
+from w2e_ros.core.model.network import W2EModel, default_device, load_model, save_model
+from w2e_ros.core.model.policy import best_first, score_map
+from w2e_ros.core.robot.pointcloud import check_cloud, fps_indices
+from w2e_ros.core.robot.primitives import BASE_PRIMITIVES, PRIMITIVES, Action
 from w2e_ros.paths import default_checkpoint, default_replay_pack
 from w2e_ros.ros.conversions import (
     action_to_interaction,
@@ -63,7 +63,7 @@ from w2e_ros.ros.spin import run_node
 from w2e_ros.ros.state import scoped_dir, state_scope
 
 if TYPE_CHECKING:
-    from w2e_ros.core.data import InteractionData
+    from w2e_ros.core.dataset.interactions import InteractionData
 
 @dataclass
 class InferenceSettings:
@@ -208,8 +208,8 @@ class InferenceNode(Node):
         a load error); choosing and encoding its interactions runs in a thread when
         ``background`` (tens of seconds for the shipped pack on a CPU: the services must not
         wait for it), else before returning."""
-        from w2e_ros.core.data import InteractionData
-        from w2e_ros.core.training import load_training_data_from, method_categories
+        from w2e_ros.core.dataset.interactions import InteractionData
+        from w2e_ros.core.model.training import load_training_data_from, method_categories
 
         s = self.settings
         path = self._checkpoint(primitive)
@@ -503,7 +503,7 @@ class InferenceNode(Node):
 
 def main(args: list[str] | None = None) -> None:
     """Run the inference node."""
-    keep_freed_memory()  # the map's tensors stay mapped between requests (core/allocator.py)
+    keep_freed_memory()  # the map's tensors stay mapped between requests (core/infra/allocator.py)
     run_node(InferenceNode, args, threads=1)
 
 

@@ -1,28 +1,28 @@
 """Planner node: the user-facing ``explore`` (service and action) and ``manipulate``.
 
-``explore`` runs THE few-shot loop of the core (``w2e_ros.core.explore.explore``) with two
-ROS-backed halves: :class:`RosModel` (the inference node's ``predict_maps`` / ``update_model``)
-and :class:`RosWorld` (object clouds from the segmentation node's ``objects``, scenes loaded
-through the bridge's ``load_scene``, interactions run by the executor's
+``explore`` runs THE few-shot loop of the core (``w2e_ros.core.exploration.explore.explore``)
+with two ROS-backed halves: :class:`RosModel` (the inference node's ``predict_maps`` /
+``update_model``) and :class:`RosWorld` (object clouds from the segmentation node's
+``objects``, scenes loaded through the bridge's ``load_scene``, interactions run by the executor's
 ``execute_interaction`` action). The service and the action share one implementation
 (:class:`w2e_ros.ros.explore_service.ExploreService`: request checks, session resume, the
 loop); the action adds feedback per interaction and cancel between interactions.
 ``manipulate`` executes, per object, the action the manipulate policy picks
-(``w2e_ros.core.policy``: the highest predicted affordance that passes the checks below).
+(``w2e_ros.core.model.policy``: the highest predicted affordance that passes the checks below).
 Progress goes out on ``exploration_progress`` after every step. This node holds the clients
 and the waits on the other nodes (``w2e_ros.ros.futures.wait_future``).
 
 With ``check_approach`` (on by default) both act only where the hand's approach does not run
-into the object's observed cloud (``w2e_ros.core.feasibility``): manipulate takes the best of
+into the object's observed cloud (``w2e_ros.core.robot.feasibility``): manipulate takes the best of
 the ``approach_candidates`` highest-affordance actions that passes, explore drops the
 candidates that do not. With ``arm: panda`` the same holds for reach: only actions whose
-waypoints a Panda based at ``arm_base_pose`` can follow (``w2e_ros.core.kinematics``: IK
+waypoints a Panda based at ``arm_base_pose`` can follow (``w2e_ros.core.robot.kinematics``: IK
 within the joint limits and the workspace box) are executed.
 
 Every executed interaction is appended to the session's log on disk
-(``w2e_ros.core.session_log``) before it is learned from, and the inference node saves the
-session's checkpoint after every update; an explore call for a session whose last run did not
-finish restores both in the inference node and continues where the run stopped.
+(``w2e_ros.core.exploration.session_log``) before it is learned from, and the inference node
+saves the session's checkpoint after every update; an explore call for a session whose last
+run did not finish restores both in the inference node and continues where the run stopped.
 
 Every wait on another node has a timeout (parameters): a dead inference or executor node
 turns into success=false with a message, never a hung service. A call pins the processes that
@@ -57,13 +57,13 @@ from w2e_msgs.msg import (
 )
 from w2e_msgs.srv import Explore, LoadScene, Manipulate, PredictMaps, UpdateModel
 
-from w2e_ros.core.categories import load_categories
-from w2e_ros.core.config import ExploreConfig
-from w2e_ros.core.feasibility import DEFAULT_CHECK, Arm, ArmCheck
-from w2e_ros.core.kinematics import BASE_POSE_DESCRIPTION, DEFAULT_BASE_POSE
-from w2e_ros.core.policy import ManipulatePolicy
-from w2e_ros.core.strategies import get_strategy
-from w2e_ros.core.targets import stable_seed
+from w2e_ros.core.dataset.categories import load_categories
+from w2e_ros.core.dataset.targets import stable_seed
+from w2e_ros.core.exploration.config import ExploreConfig
+from w2e_ros.core.exploration.strategies import get_strategy
+from w2e_ros.core.model.policy import ManipulatePolicy
+from w2e_ros.core.robot.feasibility import DEFAULT_CHECK, Arm, ArmCheck
+from w2e_ros.core.robot.kinematics import BASE_POSE_DESCRIPTION, DEFAULT_BASE_POSE
 from w2e_ros.ros.action_client import LockedActionClient
 from w2e_ros.ros.conversions import interaction_to_action
 from w2e_ros.ros.explore_service import (  # noqa: F401 - RosModel, RosWorld: the planner's halves
@@ -109,7 +109,7 @@ class PlannerSettings:
     arm: str = param("flying", "the arm that executes: flying (the simulator's free hand, "
                      "every pose reachable: the paper's benchmark) or panda (a Franka Panda at "
                      "arm_base_pose: manipulate executes the best action the arm can follow, "
-                     "explore drops the others; w2e_ros.core.kinematics)")
+                     "explore drops the others; w2e_ros.core.robot.kinematics)")
     arm_base_pose: list[float] = param(list(DEFAULT_BASE_POSE),
                                        f"arm panda: {BASE_POSE_DESCRIPTION}")
     arm_workspace_min: list[float] = param([-0.9, -0.9, -0.2], "arm panda: low corner of the "
@@ -405,7 +405,7 @@ class PlannerNode(Node):
 
     def on_manipulate(self, req: Manipulate.Request,
                       res: Manipulate.Response) -> Manipulate.Response:
-        """Per object, the action the manipulate policy picks (``w2e_ros.core.policy``) on
+        """Per object, the action the manipulate policy picks (``w2e_ros.core.model.policy``) on
         the inference node's best actions, executed once; no adaptation."""
         if not self.busy.acquire(blocking=False):
             res.success, res.message = False, BUSY

@@ -1,4 +1,4 @@
-"""w2e_ros.core.primitives (the plain contract) <-> w2e_msgs / geometry_msgs messages.
+"""w2e_ros.core.robot.primitives (the plain contract) <-> w2e_msgs / geometry_msgs messages.
 
 The nodes talk messages, the core and the simulator talk :class:`Action` and
 :class:`TrialResult`; these functions are the only place the two meet, and the message ->
@@ -12,7 +12,7 @@ import numpy as np
 from geometry_msgs.msg import Point, Pose, Quaternion, Vector3
 from w2e_msgs.msg import Interaction, InteractionOutcome
 
-from w2e_ros.core.primitives import PRIMITIVES, Action, TrialResult
+from w2e_ros.core.robot.primitives import PRIMITIVES, Action, TrialResult
 
 # --- geometry_msgs <-> numpy -----------------------------------------------------------------
 

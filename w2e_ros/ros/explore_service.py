@@ -1,14 +1,16 @@
 """The planner's ``explore``, service and action alike: the request checked, the session's
-run opened (or resumed), THE few-shot loop of the core (``w2e_ros.core.explore.explore``) run
-over two ROS-backed halves, and the response filled.
+run opened (or resumed), THE few-shot loop of the core
+(``w2e_ros.core.exploration.explore.explore``) run over two ROS-backed halves, and the
+response filled.
 
 :class:`RosModel` scores and updates through the inference node's ``predict_maps`` /
 ``update_model``; :class:`RosWorld` observes object clouds on the segmentation node's
 ``objects`` and executes interactions through the executor's ``execute_interaction`` action.
 Both talk to the other nodes through the planner node (:class:`Stack`: its clients, its
 waits with timeouts and peer checks). Every executed interaction is appended to the session's
-log on disk (``w2e_ros.core.session_log``) before it is learned from; an explore call for a
-session whose last run did not finish restores the run in the inference node and continues.
+log on disk (``w2e_ros.core.exploration.session_log``) before it is learned from; an explore
+call for a session whose last run did not finish restores the run in the inference node and
+continues.
 """
 
 from __future__ import annotations
@@ -27,13 +29,19 @@ from w2e_msgs.action import Explore as ExploreAction
 from w2e_msgs.msg import ExplorationProgress, Interaction, InteractionOutcome
 from w2e_msgs.srv import Explore, PredictMaps, UpdateModel
 
-from w2e_ros.core.categories import load_categories
-from w2e_ros.core.config import ExploreConfig
-from w2e_ros.core.explore import Candidates, Executed, ExplorationResult, StepRecord, explore
-from w2e_ros.core.feasibility import Arm
-from w2e_ros.core.primitives import PRIMITIVES, Action, TrialResult
-from w2e_ros.core.session_log import SessionRun, open_session
-from w2e_ros.core.strategies import Scored, get_strategy
+from w2e_ros.core.dataset.categories import load_categories
+from w2e_ros.core.exploration.config import ExploreConfig
+from w2e_ros.core.exploration.explore import (
+    Candidates,
+    Executed,
+    ExplorationResult,
+    StepRecord,
+    explore,
+)
+from w2e_ros.core.exploration.session_log import SessionRun, open_session
+from w2e_ros.core.exploration.strategies import Scored, get_strategy
+from w2e_ros.core.robot.feasibility import Arm
+from w2e_ros.core.robot.primitives import PRIMITIVES, Action, TrialResult
 from w2e_ros.ros.conversions import (
     action_to_interaction,
     outcome_to_trial_result,

@@ -18,7 +18,7 @@ from geometry_msgs.msg import Point
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
 
-from w2e_ros.core.primitives import Action
+from w2e_ros.core.robot.primitives import Action
 
 NAMESPACE = "w2e_interaction"
 ARROW, CONTACT, PATH, LABEL = 0, 1, 2, 3  # marker ids within the namespace

@@ -80,11 +80,11 @@ def param(default: Any, description: str, *, read_only: bool = False,
 def setting_param(config_cls: type, name: str, *, also: str = "",
                   min: float | None = None, max: float | None = None) -> Any:  # noqa: A002
     """A parameter that mirrors setting ``name`` of a core config dataclass
-    (``w2e_ros.core.settings``): the same name, default and description (``also`` appended),
+    (``w2e_ros.core.infra.settings``): the same name, default and description (``also`` appended),
     so the node, the CLI and the core agree by construction. The field's annotation must be
     the setting's type (checked when the parameters are declared); ``min`` / ``max``: the
     range this node accepts."""
-    from w2e_ros.core.settings import leaf_fields
+    from w2e_ros.core.infra.settings import leaf_fields
 
     f, tp = leaf_fields(config_cls)[name]
     meta = {"description": f.metadata["help"] + also, "read_only": False, "min": min,

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from w2e_ros.core.pointcloud import fps_indices
+from w2e_ros.core.robot.pointcloud import fps_indices
 
 
 @dataclass

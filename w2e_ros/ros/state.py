@@ -14,7 +14,7 @@ from pathlib import Path
 
 from rclpy.node import Node
 
-from w2e_ros.core.session_log import check_name
+from w2e_ros.core.exploration.session_log import check_name
 from w2e_ros.ros.params import ParameterError
 
 _MAX = 64  # what check_name allows

@@ -1,11 +1,11 @@
 """Primitive <-> gripper waypoints, and the outcome of a trial from what the robot measured.
 
 Plain Python (no rclpy). The executor turns an :class:`Action` into the wrist waypoints of
-its primitive (``w2e_ros.core.primitives``: start 0.15 m behind the point along ``up``,
+its primitive (``w2e_ros.core.robot.primitives``: start 0.15 m behind the point along ``up``,
 ...); the simulator
 bridge, which can only run whole primitives, maps such a trajectory back to the action it
 encodes and refuses anything else. Both directions use the core's schedule
-(:func:`w2e_ros.core.primitives.schedule`), which the simulator runs too, so there is one
+(:func:`w2e_ros.core.robot.primitives.schedule`), which the simulator runs too, so there is one
 definition of each primitive's motion.
 """
 
@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from w2e_ros.core.primitives import (
+from w2e_ros.core.robot.primitives import (
     PRIMITIVES,
     PUSH_START,
     Action,
@@ -129,7 +129,7 @@ def outcome_from_measurement(
     reason: str = "",
 ) -> TrialResult:
     """Judge a trial from what the robot side measured, with the success rule of
-    ``w2e_ros.core.primitives``.
+    ``w2e_ros.core.robot.primitives``.
 
     Success: valid, the touched part is movable, it moved > 0.01 (m or rad) or more than half
     its range, and for pulls the contact point moved along the hand's pulling direction
