@@ -36,12 +36,8 @@ from w2e_ros.ros.pointcloud import (
 from w2e_ros.ros.qos import LATCHED_QOS, SENSOR_QOS
 from w2e_ros.ros.segmentation import Segmenter, SegmenterConfig
 from w2e_ros.ros.spin import run_node
-from w2e_ros.ros.transforms import (
-    TRANSFORM_SOURCES,
-    CameraFrames,
-    TfLookup,
-    parse_camera_pose,
-)
+from w2e_ros.ros.tf import TfLookup
+from w2e_ros.ros.transforms import TRANSFORM_SOURCES, CameraFrames, parse_camera_pose
 
 LABEL_FIELD = "object_id"
 

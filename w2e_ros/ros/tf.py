@@ -19,6 +19,8 @@ stack needs of it:
   publishes once, latched), fills the buffer, and :meth:`TfListener.lookup` waits up to a
   timeout for transforms that have not arrived yet. The topics are absolute as tf2_ros has
   them; remap ``/tf`` and ``/tf_static`` for a namespaced robot.
+* :class:`TfLookup`: a node's lookups into its robot frame over a listener, as
+  :class:`w2e_ros.ros.transforms.CameraFrames` calls them (a miss is a ``FrameError``).
 """
 
 from __future__ import annotations
@@ -313,4 +315,34 @@ class TfListener:
                     cond.wait(min(left, 0.05))
 
 
-__all__ = ["TfBuffer", "TfError", "TfListener", "stamp_ns"]
+class TfLookup:
+    """TF lookups into ``target_frame`` for a node (:class:`TfListener` on ``/tf`` and
+    ``/tf_static``), as :class:`w2e_ros.ros.transforms.CameraFrames` calls them.
+
+    A lookup waits up to ``timeout_s`` for transforms not yet received; a stamp outside an
+    edge's history by at most ``tolerance_s`` takes its nearest transform. The listener's
+    subscriptions are in a reentrant callback group: a lookup that waits in a callback needs a
+    multi-threaded executor so they can run meanwhile.
+    """
+
+    def __init__(self, node, target_frame: str, timeout_s: float, tolerance_s: float = 0.0,
+                 cache_s: float = 10.0) -> None:
+        self.target_frame = target_frame
+        self.timeout_s = float(timeout_s)
+        self.tolerance_s = float(tolerance_s)
+        self.listener = TfListener(node, cache_s=cache_s)
+        self.buffer = self.listener.buffer
+
+    def knows(self, frame: str) -> bool:
+        """Whether TF has named ``frame`` (as a child or a parent) so far."""
+        return self.buffer.knows(frame)
+
+    def __call__(self, frame: str, stamp=None, wait: bool = True) -> RigidTransform:
+        try:
+            return self.listener.lookup(self.target_frame, frame, stamp,
+                                        self.timeout_s if wait else 0.0, self.tolerance_s)
+        except TfError as err:
+            raise FrameError(f"TF: {err}") from None
+
+
+__all__ = ["TfBuffer", "TfError", "TfListener", "TfLookup", "stamp_ns"]

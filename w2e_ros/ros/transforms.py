@@ -15,7 +15,8 @@ transform takes it there:
   (x y z qx qy qz qw: the pose of the camera frame in the robot frame, which maps camera
   points into the robot frame).
 
-The geometry here is plain numpy; :class:`TfLookup` wraps a :class:`w2e_ros.ros.tf.TfListener`.
+The geometry here is plain numpy and imports nothing of TF; the lookup that reads the
+robot's tree is :class:`w2e_ros.ros.tf.TfLookup`, which stands on this module.
 """
 
 from __future__ import annotations
@@ -107,10 +108,10 @@ FrameError. ``wait=False``: answer from what has arrived, at once."""
 class CameraFrames:
     """Which transform takes a cloud in ``frame`` into ``target_frame`` (see the module doc).
 
-    ``lookup`` is the TF lookup (:class:`TfLookup`; None where TF is not used), ``knows(frame)``
-    whether TF has heard of a frame at all (auto: a frame it has not falls back to the static
-    pose without waiting), ``warn`` gets the note that a failed lookup fell back to the
-    static pose.
+    ``lookup`` is the TF lookup (:class:`w2e_ros.ros.tf.TfLookup`; None where TF is not used),
+    ``knows(frame)`` whether TF has heard of a frame at all (auto: a frame it has not falls
+    back to the static pose without waiting), ``warn`` gets the note that a failed lookup fell
+    back to the static pose.
     """
 
     def __init__(self, target_frame: str, source: str = "auto",
@@ -171,36 +172,3 @@ class CameraFrames:
             return None
         return self.static_pose
 
-
-class TfLookup:
-    """TF lookups into ``target_frame`` for a node (:class:`w2e_ros.ros.tf.TfListener` on
-    ``/tf`` and ``/tf_static``).
-
-    A lookup waits up to ``timeout_s`` for transforms not yet received; a stamp outside an
-    edge's history by at most ``tolerance_s`` takes its nearest transform. The listener's
-    subscriptions are in a reentrant callback group: a lookup that waits in a callback needs a
-    multi-threaded executor so they can run meanwhile.
-    """
-
-    def __init__(self, node, target_frame: str, timeout_s: float, tolerance_s: float = 0.0,
-                 cache_s: float = 10.0) -> None:
-        from w2e_ros.ros.tf import TfListener
-
-        self.target_frame = target_frame
-        self.timeout_s = float(timeout_s)
-        self.tolerance_s = float(tolerance_s)
-        self.listener = TfListener(node, cache_s=cache_s)
-        self.buffer = self.listener.buffer
-
-    def knows(self, frame: str) -> bool:
-        """Whether TF has named ``frame`` (as a child or a parent) so far."""
-        return self.buffer.knows(frame)
-
-    def __call__(self, frame: str, stamp=None, wait: bool = True) -> RigidTransform:
-        from w2e_ros.ros.tf import TfError
-
-        try:
-            return self.listener.lookup(self.target_frame, frame, stamp,
-                                        self.timeout_s if wait else 0.0, self.tolerance_s)
-        except TfError as err:
-            raise FrameError(f"TF: {err}") from None
