@@ -24,6 +24,8 @@ the shell names a profile of its own (FASTRTPS_/FASTDDS_DEFAULT_PROFILES_FILE). 
 """
 
 import os
+import tempfile
+from pathlib import Path
 
 import yaml
 from ament_index_python.packages import get_package_share_directory
@@ -32,6 +34,7 @@ from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
 from launch import LaunchDescription
+from w2e_ros.ros.transport import PROFILE_VARS, node_transport_env
 
 # short name -> (console script in setup.py, ROS node name = section of the YAML), start order
 NODES = {
@@ -42,11 +45,7 @@ NODES = {
     "executor": ("executor_node", "executor"),
     "planner": ("planner_node", "planner_node"),
 }
-# the Fast DDS profiles (as w2e_ros.ros.transport), read by Fast DDS 2.x / 3.x
-PROFILE_FILE = "fastdds_large_messages.xml"
-CONTROL_PROFILE_FILE = "fastdds_control.xml"
-LARGE_MESSAGE_NODES = ("sim_bridge", "segmentation")
-PROFILE_VARS = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE")
+LARGE_MESSAGE_NODES = ("sim_bridge", "segmentation")  # as NodeSpec.large_messages in bringup
 
 
 def _nodes(context, *args, **kwargs):
@@ -100,18 +99,14 @@ def _nodes(context, *args, **kwargs):
 
 
 def _transport_env(name: str) -> dict[str, str]:
-    """Both profile variables of one node: the shell's own profile where it names one (the
-    shipped large-message profile, which the venv's activate script sets, is none), else
-    shared memory for the cloud nodes and UDP only for the others."""
-    config = os.path.join(get_package_share_directory("w2e_ros"), "config")
-    shipped = os.path.join(config, PROFILE_FILE)
-    named = next((os.environ[v] for v in PROFILE_VARS if os.environ.get(v)), None)
-    if named and os.path.realpath(named) != os.path.realpath(shipped):
-        chosen = named
-    else:
-        chosen = shipped if name in LARGE_MESSAGE_NODES else os.path.join(
-            config, CONTROL_PROFILE_FILE)
-    return {v: chosen for v in PROFILE_VARS}
+    """The Fast DDS variables of one node (w2e_ros.ros.transport.node_transport_env, as in
+    ``w2e bringup``): the shell's own profile where it names one (the shipped large-message
+    profile, which the venv's activate script sets, is none), else shared memory for the cloud
+    nodes and UDP only for the others, with LOCALHOST discovery written into the profile."""
+    out = Path(tempfile.mkdtemp(prefix="w2e_launch_"))
+    env = node_transport_env(dict(os.environ), name in LARGE_MESSAGE_NODES, out)
+    keys = (*PROFILE_VARS, "ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_LOCALHOST_ONLY")
+    return {k: env.get(k, "") for k in keys if k in env or k in os.environ}
 
 
 def generate_launch_description() -> LaunchDescription:

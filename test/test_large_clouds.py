@@ -9,13 +9,17 @@ import tempfile
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
+import pytest
+
 from w2e_ros.bringup import NODES, Stack
 from w2e_ros.paths import config_dir
 from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, ros_env
 from w2e_ros.ros.transport import (
+    LOCALHOST_DISCOVERY,
     PROFILE_VARS,
     control_profile_path,
     measure_delivery,
+    node_transport_env,
     profile_path,
     with_transport_profile,
 )
@@ -59,22 +63,35 @@ def test_bringup_gives_cloud_nodes_the_profile_control_nodes_udp_unless_one_is_s
     stack._tmp = tempfile.TemporaryDirectory(dir=tmp_path)
     bridge = stack._node_env(NODES["sim_bridge"])
     executor = stack._node_env(NODES["executor"])
-    assert all(executor[v] == str(control_profile_path()) for v in PROFILE_VARS)
+    # LOCALHOST discovery (ros_env's default) is written into per-node copies of the profiles
+    control = Path(executor[PROFILE_VARS[0]])
+    assert control.name == "fastdds_control.localhost.xml"
+    assert all(executor[v] == str(control) for v in PROFILE_VARS)
+    assert executor["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "SYSTEM_DEFAULT"
+    assert control.read_text().replace(f"\n        {LOCALHOST_DISCOVERY}", "") == \
+        control_profile_path().read_text()
     shm = Path(bridge[PROFILE_VARS[0]])
     assert shm.read_text().count("<participantID>") == 1
     assert shm.read_text().replace(
         f"\n        <participantID>{stack.participant_ids['sim_bridge']}</participantID>",
-        "") == profile_path().read_text()
+        "").replace(f"\n        {LOCALHOST_DISCOVERY}", "") == profile_path().read_text()
     # the venv's activate script names the shipped profile: still chosen per node
     activated = Stack(nodes=["executor"], env=dict(base, **{v: str(profile_path())
                                                           for v in PROFILE_VARS}))
-    assert activated._node_env(NODES["executor"])[PROFILE_VARS[0]] == str(control_profile_path())
+    activated._tmp = stack._tmp
+    assert activated._node_env(NODES["executor"])[PROFILE_VARS[0]] == str(control)
     mine = Stack(nodes=["executor"], env=dict(base, FASTRTPS_DEFAULT_PROFILES_FILE="/my.xml"))
+    mine._tmp = stack._tmp
     assert all(mine._node_env(NODES["executor"])[v] == "/my.xml" for v in PROFILE_VARS)
 
 
-def test_a_kinect_size_best_effort_cloud_reaches_another_process_with_the_profile():
-    env = with_transport_profile(ros_env(domain_id=pick_domain_id()))
+@pytest.mark.parametrize("how", ["activated shell", "stack node"])
+def test_a_kinect_size_best_effort_cloud_reaches_another_process_with_the_profile(how, tmp_path):
+    """As a user's process from the activated venv gets it, and as a stack's cloud node does
+    (its copy with LOCALHOST discovery written in, rmw_fastrtps's own transports left out)."""
+    env = ros_env(domain_id=pick_domain_id())
+    env = (with_transport_profile(env) if how == "activated shell"
+           else node_transport_env(env, True, tmp_path))
     result = measure_delivery(env, width=640, height=576, rate=2.0, duration=8.0)
     # measured here (2 loaded cores): 30/30 and 10/10 with the profile, 2/30 and 1/10 without
     assert result.sent == 16 and result.size_bytes == 640 * 576 * 32

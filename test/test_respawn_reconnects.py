@@ -29,6 +29,7 @@ from waits import wait_until
 from w2e_ros.bringup import NODES, Stack, random_model_args
 from w2e_ros.ros.processes import (
     SHM_DIR,
+    _shm_mapped,
     clean_shm_at_exit,
     deleted_shm_ports,
     pick_domain_id,
@@ -92,6 +93,17 @@ def stale_ports(pids: set[int]) -> dict[int, list[str]]:
             if pid in pids and any((SHM_DIR / n).exists() for n in names)}
 
 
+def _profile_of(pid: int) -> str:
+    """The Fast DDS profile file a process was started with (its environment)."""
+    try:
+        env = Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
+    except OSError:
+        return "?"
+    var = b"FASTRTPS_DEFAULT_PROFILES_FILE="
+    named = [e.removeprefix(var).decode() for e in env if e.startswith(var)]
+    return Path(named[0]).name if named else "none (builtin transports)"
+
+
 def _wait_respawned(stack: Stack, name: str, count: int, timeout: float = 120.0) -> None:
     wait_until(lambda: stack.respawns.get(name, 0) >= count, timeout, f"{name} respawned",
                detail=lambda: str(stack.respawns))
@@ -119,6 +131,12 @@ def test_the_stack_nodes_use_udp_and_the_cloud_nodes_fresh_shared_memory_ids(sta
     assert set(s.participant_ids) == shm_nodes & set(s.alive())
     assert all(i in STACK_PARTICIPANT_IDS for i in s.participant_ids.values())
     assert len(set(s.participant_ids.values())) == len(s.participant_ids)
+    # the control nodes really talk UDP only (under LOCALHOST discovery rmw_fastrtps adds
+    # shared memory to any profile unless the node's environment keeps it out)
+    for name in set(s.alive()) - shm_nodes:
+        mapped = [path for path, _ in _shm_mapped(Path(f"/proc/{s.pid(name)}"))
+                  if Path(path).name.startswith("fastrtps_port")]
+        assert not mapped, f"{name} maps shared-memory ports: {mapped}"
 
 
 @pytest.mark.timeout(max(900, 450 * ROUNDS))  # W2E_RESPAWN_ROUNDS=20 runs for more than 900 s
@@ -139,9 +157,12 @@ def test_every_respawned_node_is_reached_by_the_next_user_call(stack):
             _wait_respawned(s, name, r)
             got = _manipulate(env)
             took.append(time.monotonic() - t_kill)
-            stale = stale_ports({s.pid(n) for n in order} | {os.getpid()})
+            pids = {s.pid(n): n for n in order} | {os.getpid(): "test"}
+            stale = stale_ports(set(pids))
             if stale:
-                stale_seen.append(f"round {r}, {name}: {stale}")
+                stale_seen.append(f"round {r}, {name}: " + "; ".join(
+                    f"{pids[p]} (pid {p}, profile {_profile_of(p)}) writes to {ports}"
+                    for p, ports in stale.items()))
             if not _reached_every_node(got):
                 failures.append(f"round {r}, {name}: {got}; deleted ports mapped: "
                                 f"{deleted_shm_ports()}")

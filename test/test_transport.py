@@ -18,8 +18,9 @@ from w2e_ros.ros.transport import (
     STACK_PARTICIPANT_IDS,
     control_profile_path,
     free_participant_id,
+    node_transport_env,
+    profile_copy,
     profile_path,
-    profile_with_participant_id,
     unicast_ports,
     user_profile,
 )
@@ -60,10 +61,34 @@ def test_a_fresh_id_first_then_the_lowest_no_survivor_holds():
 def test_the_shipped_profiles_and_a_per_node_copy_are_valid_fast_dds_xml(path, tmp_path):
     schema = etree.XMLSchema(etree.parse(str(SCHEMA)))
     assert schema.validate(etree.parse(str(path))), schema.error_log
-    copy = profile_with_participant_id(path, 77, tmp_path)
-    assert schema.validate(etree.parse(str(copy))), schema.error_log
-    rtps = ET.parse(copy).getroot().find(".//f:participant/f:rtps", NS)
-    assert rtps.findtext("f:participantID", namespaces=NS) == "77"
+    for localhost in (False, True):
+        copy = profile_copy(path, tmp_path, 77, localhost=localhost)
+        assert schema.validate(etree.parse(str(copy))), schema.error_log
+        rtps = ET.parse(copy).getroot().find(".//f:participant/f:rtps", NS)
+        assert rtps.findtext("f:participantID", namespaces=NS) == "77"
+        peers = rtps.findall("f:builtin/f:initialPeersList/f:locator/f:udpv4/f:address", NS)
+        assert [p.text for p in peers] == (["127.0.0.1"] if localhost else [])
+
+
+SHM_MAPS = """
+import os, time, rclpy
+rclpy.init(); node = rclpy.create_node("maps_probe"); time.sleep(1.0)
+print(sum("/dev/shm/fastrtps_port" in line for line in open("/proc/self/maps")), flush=True)
+"""
+
+
+@pytest.mark.parametrize("large", [False, True], ids=["control", "large_messages"])
+def test_under_localhost_discovery_only_the_cloud_nodes_use_shared_memory(large, tmp_path):
+    """rmw_fastrtps's LOCALHOST mode adds shared memory to any profile; a control node's
+    environment (node_transport_env) keeps it UDP only, a cloud node keeps its segment."""
+    from w2e_ros.ros.processes import pick_domain_id, ros_env
+
+    env = node_transport_env(ros_env(domain_id=pick_domain_id()), large, tmp_path)
+    assert env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "SYSTEM_DEFAULT"
+    out = subprocess.run([sys.executable, "-c", SHM_MAPS], env=env, capture_output=True,
+                         text=True, timeout=120)
+    ports = int(out.stdout.split()[-1])
+    assert (ports > 0) == large, out.stdout + out.stderr
 
 
 def test_the_control_profile_is_udp_only():

@@ -55,13 +55,10 @@ from w2e_ros.ros.processes import (
     venv_python,
 )
 from w2e_ros.ros.transport import (
-    control_profile_path,
     free_participant_id,
-    profile_path,
-    profile_with_participant_id,
+    node_transport_env,
     unicast_ports,
     user_profile,
-    with_profile,
 )
 
 
@@ -357,19 +354,17 @@ class Stack:
         """The environment of one node process: its Fast DDS profile. Control nodes talk UDP
         only; a shared-memory node gets a participant id whose ports no living process still
         maps, so no survivor of a node it replaces writes into a removed port."""
-        if self._user_profile is not None:
-            return with_profile(self.env, self._user_profile)
-        if not spec.large_messages:
-            return with_profile(self.env, control_profile_path())
         assert self._tmp is not None
+        out = Path(self._tmp.name)
+        if self._user_profile is not None or not spec.large_messages:
+            return node_transport_env(self.env, spec.large_messages, out)
         domain = int(self.env.get("ROS_DOMAIN_ID") or 0)
         held = {i for name, i in self.participant_ids.items() if name != spec.name}
         busy = shm_ports_in_use() | {p for i in held for p in unicast_ports(domain, i)}
         pid = free_participant_id(domain, self._ids_given, busy)
         self._ids_given.add(pid)
         self.participant_ids[spec.name] = pid
-        return with_profile(self.env, profile_with_participant_id(profile_path(), pid,
-                                                                  Path(self._tmp.name)))
+        return node_transport_env(self.env, True, out, pid)
 
     def _spawn(self, spec: NodeSpec) -> _Proc:
         assert self._params_file is not None

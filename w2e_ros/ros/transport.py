@@ -13,7 +13,9 @@ shared-memory transport loses a participant that replaces a dead one on its part
 (the survivors keep writing to the dead one's removed port; eProsima/Fast-DDS#4728), which
 over UDP cannot happen. A shared-memory node of a stack gets a participant id of its own that
 no living process still writes to (``free_participant_id``), written into a per-process copy
-of the profile (``profile_with_participant_id``).
+of the profile (``profile_copy``). Where discovery is to stay on this host the copy carries
+the localhost discovery itself (``node_transport_env``): rmw_fastrtps's LOCALHOST mode would add
+shared memory to every profile.
 
 The check: ``measure_delivery`` starts a subscriber process (sensor-data QoS) and a publisher
 process (best effort, a cloud of ``width x height`` points of 32 bytes at ``rate`` Hz for
@@ -98,18 +100,78 @@ def free_participant_id(domain_id: int, used_before: set[int], busy_ports: set[i
     return (fresh or free)[0]
 
 
-def profile_with_participant_id(profile: Path, participant_id: int, out_dir: Path) -> Path:
-    """A copy of ``profile`` whose default participant takes ``participant_id`` (Fast DDS then
-    never picks the id itself)."""
+LOCALHOST_DISCOVERY = """<builtin>
+          <!-- ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, written here: rmw_fastrtps would
+               otherwise add its own shared-memory transport to this profile's (see
+               localhost_env) -->
+          <metatrafficUnicastLocatorList>
+            <locator><udpv4/></locator>
+          </metatrafficUnicastLocatorList>
+          <initialPeersList>
+            <locator><udpv4><address>127.0.0.1</address></udpv4></locator>
+          </initialPeersList>
+        </builtin>"""
+
+
+def profile_copy(profile: Path, out_dir: Path, participant_id: int | None = None,
+                 localhost: bool = False) -> Path:
+    """A copy of ``profile`` for one node process: its default participant takes
+    ``participant_id`` (Fast DDS then never picks the id itself) and, with ``localhost``,
+    discovers over 127.0.0.1 unicast only (no multicast), as LOCALHOST discovery would."""
     text = Path(profile).read_text()
     marker = "<rtps>"
     if text.count(marker) != 1:
         raise ValueError(f"{profile}: expected one participant <rtps> element")
-    text = text.replace(marker, f"{marker}\n        <participantID>{participant_id}"
-                                "</participantID>")
-    out = Path(out_dir) / f"{Path(profile).stem}.participant{participant_id}.xml"
+    extra = ""
+    if participant_id is not None:
+        extra += f"\n        <participantID>{participant_id}</participantID>"
+    if localhost:
+        extra += f"\n        {LOCALHOST_DISCOVERY}"
+    text = text.replace(marker, marker + extra)
+    tags = (["localhost"] if localhost else []) + (
+        [f"participant{participant_id}"] if participant_id is not None else [])
+    out = Path(out_dir) / ".".join([Path(profile).stem, *tags, "xml"])
     out.write_text(text)
     return out
+
+
+def wants_localhost(env: dict[str, str]) -> bool:
+    """Discovery is meant to stay on this host (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, or
+    the deprecated ROS_LOCALHOST_ONLY=1)."""
+    return (env.get("ROS_AUTOMATIC_DISCOVERY_RANGE") == "LOCALHOST"
+            or env.get("ROS_LOCALHOST_ONLY") == "1")
+
+
+def localhost_env(env: dict[str, str], profile: Path) -> dict[str, str]:
+    """``env`` for a node whose ``profile`` (a ``profile_copy(localhost=True)``) carries the
+    localhost discovery itself.
+
+    Under LOCALHOST rmw_fastrtps (Jazzy) sets ``use_builtin_transports=false`` and appends a
+    shared-memory and a UDP transport of its own to the profile's: the control profile's
+    "UDP only" would then not hold (measured: every control node mapped shared-memory ports).
+    SYSTEM_DEFAULT leaves the profile alone, and the profile keeps discovery on this host.
+    """
+    out = with_profile(env, profile)
+    out["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "SYSTEM_DEFAULT"
+    out.pop("ROS_LOCALHOST_ONLY", None)
+    return out
+
+
+def node_transport_env(env: dict[str, str], large_messages: bool, out_dir: Path,
+                       participant_id: int | None = None) -> dict[str, str]:
+    """The environment of one stack node: the user's profile where ``env`` names one, else a
+    copy of the shipped profile (shared memory for a ``large_messages`` node, UDP only for
+    the others) with ``participant_id`` and, where discovery is to stay on this host, the
+    localhost discovery written into it."""
+    named = user_profile(env)
+    if named is not None:
+        return with_profile(env, named)
+    base = profile_path() if large_messages else control_profile_path()
+    if not wants_localhost(env):
+        if participant_id is None:
+            return with_profile(env, base)
+        return with_profile(env, profile_copy(base, out_dir, participant_id))
+    return localhost_env(env, profile_copy(base, out_dir, participant_id, localhost=True))
 
 
 def with_transport_profile(env: dict[str, str]) -> dict[str, str]:
