@@ -18,7 +18,7 @@ import time
 import numpy as np
 import torch
 
-from w2e_ros.core.exploration.strategies import STRATEGIES, Scored
+from w2e_ros.core.exploration.strategies import Scored, registry
 
 FEATURE_DIM = 128
 FEATURE_CENTRES = 300
@@ -58,7 +58,7 @@ def main() -> None:
     k = max(1, a.objects // 2)
     print(f"{a.objects} objects x {a.candidates} candidates, {FEATURE_DIM}-d features, "
           f"k = {k}, {a.explored} explored, {a.threads} thread(s)")
-    for name, st in STRATEGIES.items():
+    for name, st in registry(experimental=True).items():
         if not st.explores or (a.rules and name not in a.rules):
             continue
         times = []

@@ -319,7 +319,7 @@ def test_a_panda_arm_drops_the_candidates_it_cannot_reach(novel):
 def test_oracle_executes_the_pool_candidates_the_model_gets_most_wrong(novel):
     model, world = FakeModel([0.0] * 2, [0.0] * 2), TaggedWorld(novel)
     cfg = _fake_cfg(budget=2, round_size=2, per_object_per_round=1, oracle_pool=12)
-    res = explore(model, world, [0, 1], get_strategy("oracle"), cfg, "push")
+    res = explore(model, world, [0, 1], get_strategy("oracle", experimental=True), cfg, "push")
     # the pools were labelled in hindsight first (2 x 12 trials), then 4 interactions
     assert len(world.executed) == 24 + 4 and len(res.steps) == 4
     assert [t for t, _ in world.executed[:24]] == [0] * 12 + [1] * 12
@@ -340,7 +340,7 @@ def test_oracle_executes_the_pool_candidates_the_model_gets_most_wrong(novel):
 def test_none_strategy_spends_nothing_and_snapshots_the_initial_model(novel, replay):
     exp, cfg = _explorer(replay)
     world = RuleWorld(novel)
-    res = explore(exp, world, [0, 1], get_strategy("none"), cfg, "push")
+    res = explore(exp, world, [0, 1], get_strategy("none", experimental=True), cfg, "push")
     assert res.stopped == "none" and not world.executed
     assert all(torch.equal(res.snapshots[b]["aff_head.out.bias"],
                            res.snapshots[0]["aff_head.out.bias"]) for b in (1, 2, 5))

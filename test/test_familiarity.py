@@ -86,12 +86,11 @@ def test_a_bank_from_training_data_ranks_a_new_cloud_s_unfamiliar_points_first()
     assert close[:20].min() > close[20:].max()
 
     scored = [Scored(np.full(40, 0.5), np.full(40, 0.5), close)]
-    picks = get_strategy("geometry").select(scored, 10, 10, rng)
+    picks = get_strategy("geometry", experimental=True).select(scored, 10, 10, rng)
     assert all(c >= 20 for _, c in picks)  # the blob's points first
     # sampled: mostly the blob, not only the blob's extreme (a draw, so counted over many)
-    drawn = [get_strategy("geometry_sampled").select(scored, 10, 10,
-                                                     np.random.default_rng(s))
-             for s in range(50)]
+    sampled = get_strategy("geometry_sampled", experimental=True)
+    drawn = [sampled.select(scored, 10, 10, np.random.default_rng(s)) for s in range(50)]
     blob = np.mean([c >= 20 for d in drawn for _, c in d])
     assert blob > 0.6 and len({c for d in drawn for _, c in d}) > 10
 
@@ -100,7 +99,7 @@ def test_the_geometry_rules_refuse_to_run_without_a_bank():
     s = Scored(np.full(3, 0.5), np.full(3, 0.5))
     for name in ("geometry", "geometry_sampled"):
         with pytest.raises(ValueError, match="needs the geometric familiarity"):
-            get_strategy(name).select([s], 1, 1, np.random.default_rng(0))
+            get_strategy(name, experimental=True).select([s], 1, 1, np.random.default_rng(0))
     empty = _data([_at_origin(_plane(np.random.default_rng(3)))])
     empty.valid[:] = False
     with pytest.raises(ValueError, match="has none"):

@@ -20,6 +20,7 @@ import time
 import pytest
 
 from w2e_ros.bringup import Stack
+from w2e_ros.core.exploration.strategies import STRATEGIES
 from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, ros_env
 
 pytestmark = pytest.mark.slow
@@ -140,12 +141,13 @@ def test_a_second_request_while_explore_runs_answers_busy_at_once(tmp_path):
                     proc.wait()
 
 
-@pytest.mark.parametrize("strategy, words", [("geometry", "offline only"),
-                                             ("oracle", "offline only"),
+@pytest.mark.parametrize("strategy, words", [("geometry", "is an experiment"),
+                                             ("oracle", "is an experiment"),
                                              ("simlarity", "unknown strategy")])
 def test_a_strategy_the_stack_cannot_run_stops_the_planner_at_start_up(tmp_path, strategy, words):
-    """geometry needs the training collection and oracle hindsight labels: the planner says so
-    and exits, instead of failing at the first explore request."""
+    """geometry needs the training collection and oracle hindsight labels, and both are
+    experiments: the planner says so and names the rules it runs, and exits, instead of failing
+    at the first explore request."""
     env = ros_env(domain_id=pick_domain_id(), log_dir=tmp_path / "ros_log")
     proc = subprocess.run([sys.executable, "-m", "w2e_ros.nodes.planner_node", "--ros-args",
                            "-p", f"strategy:={strategy}"], env=env, capture_output=True,
@@ -153,3 +155,4 @@ def test_a_strategy_the_stack_cannot_run_stops_the_planner_at_start_up(tmp_path,
     out = proc.stdout + proc.stderr
     assert proc.returncode != 0, out
     assert words in out and strategy in out, out
+    assert f"the rules: {', '.join(STRATEGIES)}" in out, out

@@ -9,7 +9,21 @@ import numpy as np
 import pytest
 
 from w2e_ros.core.exploration.selection import allocate, success_weights
-from w2e_ros.core.exploration.strategies import STRATEGIES, Scored, get_strategy
+from w2e_ros.core.exploration.strategies import (
+    BEST_RULE,
+    EXPERIMENTAL,
+    STRATEGIES,
+    Scored,
+    Strategy,
+    describe_rules,
+    get_strategy,
+    registry,
+)
+
+
+def entry(name: str) -> Strategy:
+    """Any rule of the registry, the experiments' too."""
+    return get_strategy(name, experimental=True)
 
 
 def _scored() -> list[Scored]:
@@ -22,40 +36,73 @@ def _scored() -> list[Scored]:
 
 
 def test_similarity_picks_the_lowest_similarity_over_all_objects():
-    assert get_strategy("similarity").choose(_scored(), np.random.default_rng(0)) == (1, 1)
+    assert entry("similarity").choose(_scored(), np.random.default_rng(0)) == (1, 1)
 
 
 @pytest.mark.parametrize("name", ["where2act", "nosim"])
 def test_uncertainty_rules_pick_the_affordance_closest_to_one_half(name):
-    assert get_strategy(name).choose(_scored(), np.random.default_rng(0)) == (3, 0)
+    assert entry(name).choose(_scored(), np.random.default_rng(0)) == (3, 0)
 
 
 def test_confident_tries_the_likeliest_successes_first_capped_per_object():
-    picks = get_strategy("confident").select(_scored(), 3, 1, np.random.default_rng(0))
+    picks = entry("confident").select(_scored(), 3, 1, np.random.default_rng(0))
     assert picks == [(3, 1), (0, 0), (1, 0)]  # 0.99, 0.9, then object 1's best (0.45)
 
 
 def test_random_picks_valid_candidates_from_every_object():
     rng = np.random.default_rng(0)
-    picks = [get_strategy("random").choose(_scored(), rng) for _ in range(200)]
+    picks = [entry("random").choose(_scored(), rng) for _ in range(200)]
     sizes = [3, 2, 0, 2]
     assert all(0 <= i < sizes[o] for o, i in picks)
     assert {o for o, _ in picks} == {0, 1, 3}
 
 
 def test_none_does_not_explore_and_only_similarity_stops_at_the_bar():
-    none = get_strategy("none")
+    none = entry("none")
     assert not none.explores
     with pytest.raises(RuntimeError):
         none.choose(_scored(), np.random.default_rng(0))
-    assert get_strategy("similarity").stops_at_bar
-    assert not get_strategy("where2act").stops_at_bar
+    assert entry("similarity").stops_at_bar
+    assert not entry("where2act").stops_at_bar
     with pytest.raises(ValueError):
-        get_strategy("curiosity")
+        get_strategy("curiosity", experimental=True)
 
+
+
+# --- the user-facing rules and the experiments ------------------------------------------------
+
+def test_the_user_picks_from_the_paper_the_baseline_where2act_and_the_best_rule():
+    assert set(STRATEGIES) == {"similarity", "random", "where2act", BEST_RULE}
+    assert BEST_RULE == "random"  # every other rule ties it or loses to it on validation
+    assert not set(STRATEGIES) & set(EXPERIMENTAL)
+    assert registry(experimental=True) == {**STRATEGIES, **EXPERIMENTAL}
+    assert {"similarity_sampled", "geometry", "oracle", "typiclust", "none"} <= set(EXPERIMENTAL)
+
+
+def test_every_user_facing_rule_runs_on_the_stack():
+    """The planner runs them: no hindsight labels, no training bank, no encoder features."""
+    for name, s in STRATEGIES.items():
+        assert s.name == name and s.explores and not s.offline_only, name
+        assert s.summary and ";" not in s.summary, name
+
+
+def test_an_experiment_is_refused_where_only_the_user_facing_rules_go():
+    with pytest.raises(ValueError, match="is an experiment") as err:
+        get_strategy("geometry")
+    assert "similarity, random, where2act" in str(err.value)
+    assert get_strategy("geometry", experimental=True) is EXPERIMENTAL["geometry"]
+    with pytest.raises(ValueError, match="unknown strategy 'simlarity'; the rules: similarity"):
+        get_strategy("simlarity")
+
+
+def test_the_help_text_names_every_user_facing_rule_and_the_experiments_on_request():
+    text = describe_rules()
+    assert [part.split(" = ")[0] for part in text.split("; ")] == list(STRATEGIES)
+    assert "the best on the validation split" in text.split("; ")[list(STRATEGIES).index(BEST_RULE)]
+    assert describe_rules(experimental=True).endswith(", ".join(EXPERIMENTAL))
 
 def test_select_takes_the_lowest_keys_over_all_objects_capped_per_object():
-    sim = get_strategy("similarity")
+    sim = entry("similarity")
     rng = np.random.default_rng(0)
     # similarity keys: (1,1)=0.2 (3,0)=0.5 (0,1)=0.6 (1,0)=0.7 (0,0)=0.8 (0,2)=0.9 (3,1)=0.95
     assert sim.select(_scored(), 3, 2, rng) == [(1, 1), (3, 0), (0, 1)]
@@ -65,7 +112,7 @@ def test_select_takes_the_lowest_keys_over_all_objects_capped_per_object():
 
 
 def test_oracle_picks_what_the_model_gets_most_wrong_and_needs_labels():
-    oracle = get_strategy("oracle")
+    oracle = entry("oracle")
     assert oracle.needs_labels and not oracle.stops_at_bar
     labels = [np.array([0, 1, 1]), np.array([1, 0]), np.array([]), np.array([0, 0])]
     # errors |affordance - label|: obj0 .9 .9 .3, obj1 .55 0, obj3 .52 .99
@@ -81,7 +128,7 @@ def test_similarity_sampled_draws_in_proportion_to_unfamiliarity():
     0.8 : 0.4 : 0 (the paper's rule would take the first every time)."""
     scored = [Scored(affordance=np.zeros(3), similarity=np.array([0.2, 0.6, 1.0]))]
     rng = np.random.default_rng(0)
-    rule = get_strategy("similarity_sampled")
+    rule = entry("similarity_sampled")
     picks = np.array([rule.choose(scored, rng)[1] for _ in range(3000)])
     share = np.bincount(picks, minlength=3) / len(picks)
     assert share[0] == pytest.approx(2 / 3, abs=0.03)
@@ -95,7 +142,7 @@ def test_similarity_mixed_takes_half_least_familiar_half_random():
     half spread over the rest (the argmin alone would take only the least familiar)."""
     rng = np.random.default_rng(0)
     scored = [Scored(affordance=np.zeros(20), similarity=rng.random(20)) for _ in range(400)]
-    rule = get_strategy("similarity_mixed")
+    rule = entry("similarity_mixed")
     picks = rule.select(scored, 200, 1, rng)
     lowest = np.mean([c == int(np.argmin(scored[o].similarity)) for o, c in picks])
     assert 0.45 < lowest < 0.65  # half by rank (mostly the lowest) + 1/20 of the random half
@@ -109,11 +156,11 @@ def test_failure_rules_look_only_at_predicted_failures_first():
     sim = np.array([0.0, 0.3, 0.8, 0.5, 0.1])
     rng = np.random.default_rng(0)
     scored = [Scored(affordance=aff, similarity=sim)]
-    assert [c for _, c in get_strategy("similarity_failure").select(scored, 3, 5, rng)] == [1, 3, 2]
-    assert [c for _, c in get_strategy("nosim_failure").select(scored, 3, 5, rng)] == [2, 1, 3]
+    assert [c for _, c in entry("similarity_failure").select(scored, 3, 5, rng)] == [1, 3, 2]
+    assert [c for _, c in entry("nosim_failure").select(scored, 3, 5, rng)] == [2, 1, 3]
     # once the predicted failures are used up, the predicted successes follow
-    assert get_strategy("similarity_failure").select(scored, 5, 5, rng)[3:] == [(0, 0), (0, 4)]
-    assert not get_strategy("similarity_failure").stops_at_bar
+    assert entry("similarity_failure").select(scored, 5, 5, rng)[3:] == [(0, 0), (0, 4)]
+    assert not entry("similarity_failure").stops_at_bar
 
 
 def test_similarity_failure_half_takes_half_by_the_rule_and_half_at_random():
@@ -121,11 +168,11 @@ def test_similarity_failure_half_takes_half_by_the_rule_and_half_at_random():
     candidate twice and never past an object's limit."""
     rng = np.random.default_rng(0)
     scored = [Scored(affordance=rng.random(30), similarity=rng.random(30)) for _ in range(40)]
-    rule = get_strategy("similarity_failure_half")
+    rule = entry("similarity_failure_half")
     picks = rule.select(scored, 40, 2, rng)
     assert len(picks) == 40 and len(set(picks)) == 40
     assert max(np.bincount([o for o, _ in picks])) <= 2
-    first = get_strategy("similarity_failure").select(scored, 20, 2, rng)
+    first = entry("similarity_failure").select(scored, 20, 2, rng)
     assert picks[:20] == first
     # the random half reaches predicted successes, which the rule alone never takes first
     assert any(scored[o].affordance[c] > 0.5 for o, c in picks[20:])
@@ -157,12 +204,12 @@ def test_every_old_rule_gives_the_picks_it_gave_before_the_set_interface():
     generator is consumed as before too)."""
     golden = json.loads(GOLDEN.read_text())
     names = {key.split("|")[0] for key in golden}
-    assert names == {n for n, s in STRATEGIES.items() if s.explores and not s.needs_features
-                     and n != "balanced"}
+    assert names == {n for n, s in registry(experimental=True).items()
+                     if s.explores and not s.needs_features and n != "balanced"}
     for key, want in golden.items():
         name, seed, k, lim = key.split("|")
         scored, labels = _golden_inputs(int(seed))
-        rule = get_strategy(name)
+        rule = entry(name)
         rng = np.random.default_rng(int(seed))
         got = [rule.select(scored, int(k), json.loads(lim), rng,
                            labels if rule.needs_labels else None) for _ in range(2)]
@@ -199,7 +246,7 @@ def _flat(scored: list[Scored], picks: list[tuple[int, int]]) -> list[int]:
 @pytest.mark.parametrize("k,limit", [(8, 1), (20, 2), (5, 3)])
 def test_set_rules_return_k_distinct_candidates_within_the_limits(name, k, limit):
     scored, _ = _clustered()
-    picks = get_strategy(name).select(scored, k, limit, np.random.default_rng(3))
+    picks = entry(name).select(scored, k, limit, np.random.default_rng(3))
     assert len(picks) == k and len(set(picks)) == k
     assert max(np.bincount([o for o, _ in picks])) <= limit
     assert all(0 <= c < len(scored[o].affordance) for o, c in picks)
@@ -209,7 +256,7 @@ def test_set_rules_return_k_distinct_candidates_within_the_limits(name, k, limit
 def test_set_rules_respect_per_object_limits_given_per_object(name):
     scored, _ = _clustered()
     limits = [0 if o % 3 == 0 else 1 for o in range(len(scored))]  # a third of them closed
-    picks = get_strategy(name).select(scored, 12, limits, np.random.default_rng(1))
+    picks = entry(name).select(scored, 12, limits, np.random.default_rng(1))
     assert len(picks) == 12
     counts = np.bincount([o for o, _ in picks], minlength=len(scored))
     assert np.all(counts <= limits)
@@ -218,7 +265,7 @@ def test_set_rules_respect_per_object_limits_given_per_object(name):
 @pytest.mark.parametrize("name", SET_RULES)
 def test_set_rules_are_deterministic_per_seed(name):
     scored, _ = _clustered()
-    rule = get_strategy(name)
+    rule = entry(name)
     a = rule.select(scored, 10, 2, np.random.default_rng(5))
     assert a == rule.select(scored, 10, 2, np.random.default_rng(5))
     others = [rule.select(scored, 10, 2, np.random.default_rng(s)) for s in range(6, 10)]
@@ -233,7 +280,7 @@ def test_coverage_rules_spread_a_round_over_the_feature_clusters(name):
     8!/8^8 = 0.24 % of rounds)."""
     scored, blob = _clustered()
     for seed in range(5):
-        picks = get_strategy(name).select(scored, N_CLUSTERS, 2, np.random.default_rng(seed))
+        picks = entry(name).select(scored, N_CLUSTERS, 2, np.random.default_rng(seed))
         assert len(set(blob[_flat(scored, picks)])) == N_CLUSTERS, seed
 
 
@@ -244,7 +291,7 @@ def test_typiclust_covers_the_clusters_the_explored_set_left_out():
     feats = np.concatenate([s.features for s in scored])
     explored = np.stack([feats[blob == b][0] for b in range(6)])
     for seed in range(3):
-        picks = get_strategy("typiclust").select(scored, 2, 2, np.random.default_rng(seed),
+        picks = entry("typiclust").select(scored, 2, 2, np.random.default_rng(seed),
                                                  explored=explored)
         assert set(blob[_flat(scored, picks)]) == {6, 7}, seed
 
@@ -255,7 +302,7 @@ def test_typiclust_takes_a_dense_point_not_an_outlier():
     feats = np.concatenate([rng.normal(0, 0.05, (50, 4)) + [1, 0, 0, 0],
                             [[0.6, 0.8, 0, 0]]]).astype(np.float32)
     scored = [Scored(np.full(51, 0.5), np.full(51, 0.5), features=feats)]
-    (o, c), = get_strategy("typiclust").select(scored, 1, 1, np.random.default_rng(0))
+    (o, c), = entry("typiclust").select(scored, 1, 1, np.random.default_rng(0))
     assert c != 50
 
 
@@ -268,7 +315,7 @@ def test_success_seeking_rules_pick_more_likely_successes_than_random(name):
     scored, _ = _clustered()
     for s in scored:
         s.affordance = rng.beta(0.5, 4.0, len(s.affordance))
-    rule, rand = get_strategy(name), get_strategy("random")
+    rule, rand = entry(name), entry("random")
 
     def high(r) -> float:
         picks = [p for seed in range(20)
@@ -284,7 +331,7 @@ def test_similarity_coverage_gives_the_unfamiliar_objects_the_round():
     scored, blob = _clustered()
     for o, s in enumerate(scored):
         s.similarity = np.full(len(s.affordance), 0.95 if o % 2 else 0.2)
-    picks = get_strategy("similarity_coverage").select(scored, 12, 2, np.random.default_rng(0))
+    picks = entry("similarity_coverage").select(scored, 12, 2, np.random.default_rng(0))
     assert sum(o % 2 == 0 for o, _ in picks) >= 11
     flat = np.array(_flat(scored, picks))
     for o in {o for o, _ in picks}:
@@ -303,7 +350,7 @@ def test_allocate_is_proportional_within_caps():
 def test_balanced_takes_half_predicted_successes_half_near_the_boundary():
     aff = np.array([0.95, 0.9, 0.85, 0.8, 0.52, 0.48, 0.1, 0.05, 0.02, 0.01])
     scored = [Scored(aff, np.zeros(10))]
-    picks = [c for _, c in get_strategy("balanced").select(scored, 4, 4,
+    picks = [c for _, c in entry("balanced").select(scored, 4, 4,
                                                             np.random.default_rng(0))]
     assert all(aff[c] > 0.5 for c in picks[:2])
     assert set(picks[2:]) <= {4, 5, 3, 2} and len(set(picks)) == 4
@@ -313,14 +360,14 @@ def test_feature_rules_say_they_need_features_and_are_offline_only():
     scored = [Scored(np.array([0.2, 0.7]), np.array([0.5, 0.5]))]
     for name in ["coverage_success", "coverage_success_sharp", "typiclust", "probcover",
                  "similarity_coverage"]:
-        rule = get_strategy(name)
+        rule = entry(name)
         assert rule.needs_features and rule.offline_only
         with pytest.raises(ValueError, match="features"):
             rule.select(scored, 1, 1, np.random.default_rng(0))
-    assert not get_strategy("balanced").offline_only
-    assert not get_strategy("similarity").offline_only and get_strategy("oracle").offline_only
+    assert not entry("balanced").offline_only
+    assert not entry("similarity").offline_only and entry("oracle").offline_only
     with pytest.raises(ValueError, match="sets"):
-        get_strategy("typiclust").keys(scored[0], np.random.default_rng(0))
+        entry("typiclust").keys(scored[0], np.random.default_rng(0))
 
 
 def test_the_sharp_draw_reaches_its_target_where_the_plain_one_stays_flat():

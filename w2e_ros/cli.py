@@ -16,7 +16,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from w2e_ros.core.exploration.config import ExploreConfig
-from w2e_ros.core.exploration.strategies import STRATEGIES
+from w2e_ros.core.exploration.strategies import describe_rules, registry
 from w2e_ros.core.infra.allocator import keep_freed_memory
 from w2e_ros.core.infra.settings import add_arguments, from_namespace
 from w2e_ros.core.model.config import NETWORK_FLAGS, ModelConfig, TrainConfig, combinations
@@ -153,8 +153,8 @@ def _add_fewshot(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--model", required=True, help="checkpoint (w2e train's model.pt)")
     p.add_argument("--replay-data", default=None,
                    help="training collection replayed during fine-tuning (~1%%)")
-    p.add_argument("--strategy", default="similarity",
-                   choices=list(STRATEGIES))
+    p.add_argument("--strategy", default="similarity", choices=list(registry(experimental=True)),
+                   metavar="RULE", help=f"exploration rule: {describe_rules(experimental=True)}")
     p.add_argument("--mode", default="all", choices=["all", "per-category"],
                    help="all novel categories in one run, or one run per category")
     p.add_argument("--categories", nargs="+", default=None,
@@ -189,8 +189,9 @@ def _run_fewshot(a: argparse.Namespace) -> int:
         replay = replay_data(InteractionData.load(a.replay_data), meta, primitive)
     cfg = _explore_config(a, snapshot_budgets=tuple(b for b in (1, 2, 5) if b <= a.budget)
                           or (a.budget,))
-    runs = fewshot(model, meta, SimWorld(model.cfg.num_points), cats, get_strategy(a.strategy),
-                   cfg, primitive, replay, a.mode, a.objects)
+    rule = get_strategy(a.strategy, experimental=True)
+    runs = fewshot(model, meta, SimWorld(model.cfg.num_points), cats, rule, cfg, primitive,
+                   replay, a.mode, a.objects)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     for group, (res, explorer) in runs.items():

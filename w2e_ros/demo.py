@@ -23,7 +23,7 @@ from pathlib import Path
 
 from w2e_ros.core.dataset.categories import load_categories
 from w2e_ros.core.exploration.config import ExploreConfig
-from w2e_ros.core.exploration.strategies import STRATEGIES
+from w2e_ros.core.exploration.strategies import STRATEGIES, describe_rules
 from w2e_ros.paths import default_checkpoint
 
 READY_TIMEOUT_S = 180.0  # bring-up: the nodes, then their services
@@ -53,10 +53,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--checkpoint", default=None,
                    help="model of the primitive (default: shipped checkpoints/w2e_cfw_*.pt)")
     p.add_argument("--out", default="results/demo", help="directory for the PNGs and summary")
-    p.add_argument("--strategy", default="similarity", choices=[
-        n for n, st in STRATEGIES.items()
-        if st.explores and not st.offline_only],
-                   help="the planner's exploration rule (random: the baseline to compare with)")
+    p.add_argument("--strategy", default="similarity", choices=list(STRATEGIES),
+                   help=f"the planner's exploration rule: {describe_rules()}")
     p.add_argument("--seed", type=int, default=0,
                    help="the planner's seed (candidate sampling, start states)")
     p.add_argument("--replay-data", default="",

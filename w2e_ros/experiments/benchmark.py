@@ -43,7 +43,7 @@ from w2e_ros.core.exploration.evaluate import (
     predict_interactions,
 )
 from w2e_ros.core.exploration.explore import fewshot
-from w2e_ros.core.exploration.strategies import STRATEGIES, get_strategy
+from w2e_ros.core.exploration.strategies import get_strategy, registry
 from w2e_ros.core.infra.settings import flatten, nest
 from w2e_ros.core.model.metrics import auroc, average_precision, fscore, r_precision
 from w2e_ros.core.model.network import W2EModel, load_model
@@ -56,7 +56,7 @@ log = logging.getLogger("w2e.benchmark")
 METHOD_SPEC: dict[str, tuple[str, str]] = {
     # method -> (trained model kind, strategy): every strategy with our model, the Where2Act
     # baseline with its own rule, and Full-data (novel categories in training) unexplored
-    **{name: ("w2e", name) for name in STRATEGIES},
+    **{name: ("w2e", name) for name in registry(experimental=True)},
     "where2act": ("where2act", "where2act"),
     "fulldata": ("fulldata", "none"),
 }
@@ -224,7 +224,7 @@ def _run_one(run: _Run) -> dict[str, Any]:
     t0 = time.perf_counter()
     torch.manual_seed(seed)
     model, meta = load_model(ckpt)
-    strategy = get_strategy(strat_name)
+    strategy = get_strategy(strat_name, experimental=True)
     ecfg = replace(cfg.explore, budget=max_budget, snapshot_budgets=tuple(cfg.budgets),
                    seed=seed)
     train_all = resolve(run.train)

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 
 from w2e_ros.core.dataset.categories import SPLITS
 from w2e_ros.core.exploration.config import LEARNABILITY_SELECTIONS, ExploreConfig
-from w2e_ros.core.exploration.strategies import STRATEGIES
+from w2e_ros.core.exploration.strategies import registry
 from w2e_ros.core.infra.settings import REQUIRED, setting
 from w2e_ros.core.model.config import combinations
 from w2e_ros.core.robot.primitives import BASE_PRIMITIVES
@@ -114,9 +114,10 @@ class LearnabilityConfig:
 
 
 def benchmark_methods() -> tuple[str, ...]:
-    """Every method ``w2e benchmark`` can run: each strategy with our model, and Full-data
-    (w2e_ros.experiments.benchmark.METHOD_SPEC maps them to a model and a rule)."""
-    return (*STRATEGIES, "fulldata")
+    """Every method ``w2e benchmark`` can run: each strategy with our model, the experimental
+    ones too, and Full-data (w2e_ros.experiments.benchmark.METHOD_SPEC maps them to a model and
+    a rule)."""
+    return (*registry(experimental=True), "fulldata")
 
 
 BENCHMARK_RENAMED = {"runs_dir": "runs", "eval_dirs": "probe_dirs"}

@@ -80,7 +80,8 @@ def select_pool(selection: str, n: int, predicted: np.ndarray, success: np.ndarr
         if similarity is None and selection != "uncertain_failure":
             raise ValueError(f"selection {selection!r} needs the pool's similarity")
         sim = np.zeros(len(ok)) if similarity is None else similarity
-        key = (get_strategy(LABEL_FREE_RULES[selection]).keys(Scored(predicted, sim), rng)
+        rule = get_strategy(LABEL_FREE_RULES[selection], experimental=True)
+        key = (rule.keys(Scored(predicted, sim), rng)
                + rng.random(len(ok)) * 1e-6)  # ties at random
         order = np.argsort(key, kind="stable")
         if selection != "unfamiliar_half":

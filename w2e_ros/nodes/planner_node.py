@@ -60,7 +60,7 @@ from w2e_msgs.srv import Explore, LoadScene, Manipulate, PredictMaps, UpdateMode
 from w2e_ros.core.dataset.categories import load_categories
 from w2e_ros.core.dataset.targets import stable_seed
 from w2e_ros.core.exploration.config import ExploreConfig
-from w2e_ros.core.exploration.strategies import get_strategy
+from w2e_ros.core.exploration.strategies import describe_rules, get_strategy
 from w2e_ros.core.model.policy import ManipulatePolicy
 from w2e_ros.core.robot.feasibility import DEFAULT_CHECK, Arm, ArmCheck
 from w2e_ros.core.robot.kinematics import BASE_POSE_DESCRIPTION, DEFAULT_BASE_POSE
@@ -86,8 +86,7 @@ from w2e_ros.ros.state import scoped_dir, state_scope
 class PlannerSettings:
     """Parameters of the planner node (config/w2e_stack.yaml: ``planner_node``)."""
 
-    strategy: str = param("similarity", "exploration strategy: similarity (Where2Explore), "
-                          "where2act, nosim, confident, random")
+    strategy: str = param("similarity", f"exploration rule: {describe_rules()}")
     points_per_object: int = setting_param(ExploreConfig, "points_per_object", min=1)
     dirs_per_point: int = setting_param(ExploreConfig, "dirs_per_point", min=1)
     similarity_bar: float = setting_param(
@@ -164,12 +163,8 @@ class PlannerNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__("planner_node", **kwargs)
         self.settings = declare_typed_parameters(self, PlannerSettings)
-        strategy = get_strategy(self.settings.strategy)  # fail at start-up on a typo
-        if strategy.offline_only:
-            raise ValueError(f"strategy {strategy.name!r} is offline only (w2e fewshot, w2e "
-                             "benchmark): it needs hindsight labels, the training "
-                             "collection or the encoder's features, which the stack does "
-                             "not have")
+        # fail at start-up on a typo or an experiment, naming the rules the stack runs
+        get_strategy(self.settings.strategy)
         s = self.settings
         self.arm = Arm(s.arm, tuple(s.arm_base_pose), tuple(s.arm_workspace_min),
                        tuple(s.arm_workspace_max))  # ValueError names a wrong value

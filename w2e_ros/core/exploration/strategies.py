@@ -1,8 +1,17 @@
 """Exploration strategies: the registry of selection rules the few-shot loop, the benchmark
 and the planner choose by name.
 
-Each entry names a set rule of :mod:`w2e_ros.core.exploration.selection` (a round's picks over all
-objects, chosen jointly) and says what it needs (hindsight labels, the geometric
+Two parts. :data:`STRATEGIES` holds the rules a user picks (the planner's ``strategy``
+parameter, ``w2e demo --strategy``): ``similarity`` (Where2Explore's, the paper's),
+``random`` (the baseline), ``where2act`` (Where2Act's uncertainty rule) and
+:data:`BEST_RULE`, the one that explored best on the validation split. :data:`EXPERIMENTAL`
+holds the others, which ``w2e benchmark --methods``, ``w2e fewshot`` and the bench scripts
+still run (``get_strategy(name, experimental=True)``); the planner refuses them. The
+parameter description and the ``--help`` texts are made from the entries
+(:func:`describe_rules`), so a rule added or promoted here is listed everywhere.
+
+Each entry names a set rule of :mod:`w2e_ros.core.exploration.selection` (a round's picks over
+all objects, chosen jointly) and says what it needs (hindsight labels, the geometric
 familiarity, the encoder features) and whether it stops at the similarity bar; the loop knows
 only the entry. Rules that rank candidates one by one are key rules (lower key = explore
 first; :func:`w2e_ros.core.exploration.selection.key_rule`).
@@ -144,7 +153,9 @@ class Strategy:
     bar (only meaningful for models whose similarity head was trained).
     ``needs_labels``: the loop must give hindsight outcomes of the candidates (oracle).
     ``needs_familiarity``: the loop must fill ``Scored.familiarity`` (a training bank).
-    ``needs_features``: the model must fill ``Scored.features`` (the encoder's)."""
+    ``needs_features``: the model must fill ``Scored.features`` (the encoder's).
+    ``summary``: what the rule does, in a few words without a semicolon (the user-facing
+    rules' help texts)."""
 
     name: str
     rule: Rule = _no_rule
@@ -153,6 +164,7 @@ class Strategy:
     needs_labels: bool = False
     needs_familiarity: bool = False
     needs_features: bool = False
+    summary: str = ""
 
     @property
     def offline_only(self) -> bool:
@@ -215,8 +227,10 @@ def _pool(scored: Sequence[Scored], per_object: int | Sequence[int],
 
 
 _KEYED = sel.key_rule
-STRATEGIES: dict[str, Strategy] = {
-    "similarity": Strategy("similarity", _KEYED(_similarity), stops_at_bar=True),
+_ALL: dict[str, Strategy] = {
+    "similarity": Strategy("similarity", _KEYED(_similarity), stops_at_bar=True,
+                           summary="the paper's rule (Where2Explore): the least familiar "
+                           "geometry first, until an object's mean similarity passes the bar"),
     "similarity_sampled": Strategy("similarity_sampled", _KEYED(_similarity_sampled),
                                    stops_at_bar=True),
     "similarity_mixed": Strategy("similarity_mixed", _KEYED(_similarity_mixed),
@@ -225,10 +239,13 @@ STRATEGIES: dict[str, Strategy] = {
     "nosim_failure": Strategy("nosim_failure", _KEYED(_nosim_failure)),
     "similarity_failure_half": Strategy("similarity_failure_half",
                                         sel.half_rule(_KEYED(_similarity_failure))),
-    "where2act": Strategy("where2act", _KEYED(_uncertain)),
+    "where2act": Strategy("where2act", _KEYED(_uncertain),
+                          summary="Where2Act's rule: the least certain predicted success "
+                          "(closest to 0.5) first"),
     "nosim": Strategy("nosim", _KEYED(_uncertain)),
     "confident": Strategy("confident", _KEYED(_confident)),
-    "random": Strategy("random", _KEYED(_random)),
+    "random": Strategy("random", _KEYED(_random),
+                       summary="the baseline: candidates in random order"),
     "geometry": Strategy("geometry", _KEYED(_geometry), needs_familiarity=True),
     "geometry_sampled": Strategy("geometry_sampled", _KEYED(_geometry_sampled),
                                  needs_familiarity=True),
@@ -246,9 +263,48 @@ STRATEGIES: dict[str, Strategy] = {
     "none": Strategy("none", explores=False),
 }
 
+BEST_RULE = "random"
+"""The rule that explored best on the validation split, the one a user is told to take: so far
+every other rule ties random or loses to it (the measurements above, bench/RESEARCH.md). A rule
+takes its place only by measuring better there; an experimental one is then moved into the
+user-facing set."""
 
-def get_strategy(name: str) -> Strategy:
-    """The registry entry called ``name`` (a typo fails here, with the known names)."""
-    if name not in STRATEGIES:
-        raise ValueError(f"unknown strategy {name!r}; known: {', '.join(STRATEGIES)}")
-    return STRATEGIES[name]
+USER_FACING = ("similarity", "random", "where2act", BEST_RULE)
+"""The rules a user picks from: the paper's, the baseline, Where2Act's and the best measured."""
+
+STRATEGIES: dict[str, Strategy] = {n: _ALL[n] for n in dict.fromkeys(USER_FACING)}
+"""The user-facing rules (the planner, ``w2e demo``), each runnable by the stack."""
+
+EXPERIMENTAL: dict[str, Strategy] = {n: s for n, s in _ALL.items() if n not in STRATEGIES}
+"""Every other rule: for the benchmark, ``w2e fewshot`` and the bench scripts only."""
+
+
+def registry(experimental: bool = False) -> dict[str, Strategy]:
+    """Name -> entry: the user-facing rules, or every rule (``experimental``) in one order."""
+    return dict(_ALL) if experimental else dict(STRATEGIES)
+
+
+def describe_rules(experimental: bool = False) -> str:
+    """The rules a user may pick, each with what it does, for a parameter description or a
+    ``--help`` text (``experimental``: the experiments' names follow)."""
+    text = "; ".join(f"{n} = {s.summary}" + (", the best on the validation split so far"
+                                               if n == BEST_RULE else "")
+                     for n, s in STRATEGIES.items())
+    if experimental:
+        text += "; experiments (offline): " + ", ".join(EXPERIMENTAL)
+    return text
+
+
+def get_strategy(name: str, experimental: bool = False) -> Strategy:
+    """The registry entry called ``name``: a user-facing rule, or with ``experimental`` any
+    rule. A typo or an experiment where only the user-facing rules go fails here, naming the
+    allowed ones."""
+    if name in STRATEGIES:
+        return STRATEGIES[name]
+    if name in EXPERIMENTAL and experimental:
+        return EXPERIMENTAL[name]
+    allowed = ", ".join(registry(experimental))
+    if name in EXPERIMENTAL:
+        raise ValueError(f"strategy {name!r} is an experiment (w2e benchmark --methods, w2e "
+                         f"fewshot), not a rule for the robot; the rules: {allowed}")
+    raise ValueError(f"unknown strategy {name!r}; the rules: {allowed}")
