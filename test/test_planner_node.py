@@ -156,3 +156,61 @@ def test_a_strategy_the_stack_cannot_run_stops_the_planner_at_start_up(tmp_path,
     assert proc.returncode != 0, out
     assert words in out and strategy in out, out
     assert f"the rules: {', '.join(STRATEGIES)}" in out, out
+
+
+# A user's code changing the planner's parameters between calls, as `ros2 param set` does.
+SET_PARAMS = """
+import json, sys
+import rclpy
+from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+from rcl_interfaces.srv import GetParameters, SetParameters
+
+rclpy.init()
+node = rclpy.create_node("user_params")
+set_cli = node.create_client(SetParameters, "planner_node/set_parameters")
+get_cli = node.create_client(GetParameters, "planner_node/get_parameters")
+assert set_cli.wait_for_service(timeout_sec=60.0) and get_cli.wait_for_service(timeout_sec=60.0)
+
+
+def call(cli, req):
+    future = cli.call_async(req)
+    rclpy.spin_until_future_complete(node, future, timeout_sec=30.0)
+    return future.result()
+
+
+out = []
+for name, kind, value in json.loads(sys.argv[1]):
+    v = ParameterValue(type=kind)
+    if kind == ParameterType.PARAMETER_STRING:
+        v.string_value = value
+    else:
+        v.integer_value = value
+    (r,) = call(set_cli, SetParameters.Request(parameters=[Parameter(name=name, value=v)])).results
+    (now,) = call(get_cli, GetParameters.Request(names=["strategy"])).values
+    out.append({"name": name, "ok": r.successful, "reason": r.reason,
+                "strategy": now.string_value})
+print(json.dumps(out), flush=True)
+"""
+
+
+def test_strategy_and_seed_change_between_calls_and_nothing_else_does(tmp_path):
+    """``strategy`` is a live parameter (w2e demo runs two rules on one stack so): a user-facing
+    rule is taken, an experiment or a typo refused with the allowed rules named, and a
+    parameter the planner reads at start-up refused with what to do instead."""
+    env = ros_env(domain_id=pick_domain_id(), log_dir=tmp_path / "ros_log")
+    string, integer = 4, 2  # rcl_interfaces ParameterType
+    sets = [("strategy", string, "similarity"), ("strategy", string, "coverage_success"),
+            ("strategy", string, "simlarity"), ("seed", integer, 7),
+            ("points_per_object", integer, 8)]
+    with Stack(nodes=["planner"], env=env, output=io.StringIO()):
+        proc = subprocess.run([sys.executable, "-c", SET_PARAMS, json.dumps(sets)], env=env,
+                              capture_output=True, text=True, timeout=180)
+    lines = [x for x in proc.stdout.splitlines() if x.startswith("[")]
+    assert lines, proc.stdout + proc.stderr
+    took, experiment, typo, seed, startup = json.loads(lines[-1])
+    assert took["ok"] and took["strategy"] == "similarity", took
+    assert not experiment["ok"] and "is an experiment" in experiment["reason"], experiment
+    assert experiment["strategy"] == "similarity"  # unchanged by a refused set
+    assert not typo["ok"] and "unknown strategy" in typo["reason"], typo
+    assert seed["ok"], seed
+    assert not startup["ok"] and "restart the planner" in startup["reason"], startup

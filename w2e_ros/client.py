@@ -35,8 +35,10 @@ from uuid import uuid4
 
 import numpy as np
 import rclpy
+from rcl_interfaces.srv import SetParameters
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from std_srvs.srv import Trigger
 from unique_identifier_msgs.msg import UUID
 from w2e_msgs.action import Explore as ExploreAction
@@ -273,6 +275,7 @@ class W2EClient:
         self._predict = n.create_client(PredictMaps, "predict_maps")
         self._scene = n.create_client(LoadScene, "load_scene")
         self._reset = n.create_client(Trigger, "reset_model")
+        self._planner_params = n.create_client(SetParameters, "planner_node/set_parameters")
         # which process serves each name: one that dies or restarts while a call waits on it
         # ends the call within seconds (the planner's explore would otherwise be waited for
         # until the timeout, 30 min by default)
@@ -461,6 +464,19 @@ class W2EClient:
                                   [Act.from_msg(x) for x in m.best_actions],
                                   list(m.best_scores), float(m.mean_similarity)))
         return maps
+
+    def set_strategy(self, strategy: str, seed: int | None = None, timeout: float = 30.0) -> None:
+        """Make the planner explore with ``strategy`` (and ``seed``) from its next call on,
+        as ``ros2 param set planner_node strategy ...`` does; StackCallError names why the
+        planner refused (an experiment, a typo, a call running)."""
+        params = [Parameter("strategy", Parameter.Type.STRING, strategy)]
+        if seed is not None:
+            params.append(Parameter("seed", Parameter.Type.INTEGER, int(seed)))
+        req = SetParameters.Request(parameters=[p.to_parameter_msg() for p in params])
+        r = self._call("planner_node/set_parameters", self._planner_params, req, timeout)
+        for p, res in zip(params, r.results, strict=True):
+            if not res.successful:
+                raise StackCallError(f"planner {p.name}={p.value!r}: {res.reason}")
 
     def reset_model(self, timeout: float = 60.0) -> str:
         """Reload the inference node's checkpoints (forget what was explored)."""

@@ -41,6 +41,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.action.server import ServerGoalHandle
 from rclpy.callback_groups import ReentrantCallbackGroup
@@ -60,7 +61,7 @@ from w2e_msgs.srv import Explore, LoadScene, Manipulate, PredictMaps, UpdateMode
 from w2e_ros.core.dataset.categories import load_categories
 from w2e_ros.core.dataset.targets import stable_seed
 from w2e_ros.core.exploration.config import ExploreConfig
-from w2e_ros.core.exploration.strategies import describe_rules, get_strategy
+from w2e_ros.core.exploration.strategies import BEST_RULE, describe_rules, get_strategy
 from w2e_ros.core.model.policy import ManipulatePolicy
 from w2e_ros.core.robot.feasibility import DEFAULT_CHECK, Arm, ArmCheck
 from w2e_ros.core.robot.kinematics import BASE_POSE_DESCRIPTION, DEFAULT_BASE_POSE
@@ -86,7 +87,8 @@ from w2e_ros.ros.state import scoped_dir, state_scope
 class PlannerSettings:
     """Parameters of the planner node (config/w2e_stack.yaml: ``planner_node``)."""
 
-    strategy: str = param("similarity", f"exploration rule: {describe_rules()}")
+    strategy: str = param(BEST_RULE, f"exploration rule (settable between calls: ros2 param "
+                                      f"set): {describe_rules()}")
     points_per_object: int = setting_param(ExploreConfig, "points_per_object", min=1)
     dirs_per_point: int = setting_param(ExploreConfig, "dirs_per_point", min=1)
     similarity_bar: float = setting_param(
@@ -165,6 +167,7 @@ class PlannerNode(Node):
         self.settings = declare_typed_parameters(self, PlannerSettings)
         # fail at start-up on a typo or an experiment, naming the rules the stack runs
         get_strategy(self.settings.strategy)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
         s = self.settings
         self.arm = Arm(s.arm, tuple(s.arm_base_pose), tuple(s.arm_workspace_min),
                        tuple(s.arm_workspace_max))  # ValueError names a wrong value
@@ -275,6 +278,37 @@ class PlannerNode(Node):
             handle.cancel_goal_async()
             raise
         return res.result.outcome
+
+    # parameters a call reads when it starts; every other one is read at start-up
+    LIVE_PARAMETERS = ("strategy", "seed")
+
+    def _on_set_parameters(self, params) -> SetParametersResult:
+        """``strategy`` and ``seed`` change between calls (``ros2 param set planner_node
+        strategy similarity``), checked as at start-up; the rest needs a restart, and nothing
+        changes while an explore or manipulate runs."""
+        for p in params:
+            if p.name == "use_sim_time":
+                continue
+            if p.name not in self.LIVE_PARAMETERS:
+                return SetParametersResult(successful=False, reason=(
+                    f"{p.name} is read at start-up: restart the planner to change it (live: "
+                    f"{', '.join(self.LIVE_PARAMETERS)})"))
+            if p.name == "strategy":
+                try:
+                    get_strategy(p.value)
+                except ValueError as e:
+                    return SetParametersResult(successful=False, reason=str(e))
+        if not self.busy.acquire(blocking=False):
+            return SetParametersResult(successful=False,
+                                       reason="an explore or manipulate is running")
+        try:
+            for p in params:
+                if p.name in self.LIVE_PARAMETERS:
+                    setattr(self.settings, p.name, p.value)
+                    self.get_logger().info(f"{p.name} = {p.value!r}")
+        finally:
+            self.busy.release()
+        return SetParametersResult(successful=True)
 
     def on_objects(self, msg: SegmentedObjects) -> None:
         with self.objects_cv:
