@@ -311,6 +311,16 @@ def headline() -> str:
             f"{diff(bench, 'similarity', 'random', 'auroc')}.")
 
 
+def demo_default() -> str:
+    """What ``make demo`` printed on its default (bench/results/demo/summary.json)."""
+    from w2e_ros.demo import report
+
+    res = load("demo/summary.json")
+    return ("```\n" + report(res) + "\n```\n\n"
+            f"`make demo`, {res['date']}: {res['seconds_total']:.0f} s after the install (2 cores "
+            "shared with a CI run). Source: `bench/results/demo/summary.json`.")
+
+
 def pooled_success() -> str:
     """The two measurements of pooled sample success that the pages once mixed up."""
     full = load("benchmark.json")
@@ -415,6 +425,7 @@ BLOCKS: dict[str, Callable[[], str]] = {
     "key-figures": key_figures,
     "headline": headline,
     "pooled-success": pooled_success,
+    "demo-default": demo_default,
     "demo-seeds": lambda: demo_seeds("", ("budget2",)),
     "demo-summary": lambda: demo_seeds("", ("budget2",), per_seed=False),
     "reliability-respawn": respawn,

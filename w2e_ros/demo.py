@@ -5,17 +5,22 @@ executor, planner), picks a category that the default combination (cfw) never tr
 and through the Python client:
 
 1. ``manipulate`` unseen TEST instances -> success rate before exploring;
-2. ``explore`` 6 EXPLORE instances of the category (a longer row occludes itself), 5
-   interactions per instance;
-3. ``manipulate`` the same TEST instances again (same start states) -> success rate after;
+2. for each rule (default: the best measured, ``random``, and the paper's ``similarity``):
+   ``explore`` 6 EXPLORE instances of the category (a longer row occludes itself), 5
+   interactions per instance, every rule spending the whole budget (equal spend), then
+   ``manipulate`` the same TEST instances again (same start states) -> success rate after,
+   and ``reset_model`` before the next rule;
 
-and writes affordance / similarity heatmaps of one test instance, before and after, as PNGs.
+and prints each rule's before -> after with a 95 % interval and the paired comparison, beside
+what ten seeds of the same run gave (bench/results/demo_seeds), and writes a plot of the
+success rates and affordance / similarity heatmaps of one test instance as PNGs.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import signal
 import sys
 import time
@@ -23,7 +28,7 @@ from pathlib import Path
 
 from w2e_ros.core.dataset.categories import load_categories
 from w2e_ros.core.exploration.config import ExploreConfig
-from w2e_ros.core.exploration.strategies import STRATEGIES, describe_rules
+from w2e_ros.core.exploration.strategies import BEST_RULE, STRATEGIES, describe_rules
 from w2e_ros.paths import default_checkpoint
 
 READY_TIMEOUT_S = 180.0  # bring-up: the nodes, then their services
@@ -39,9 +44,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--primitive", default="pull", choices=["push", "pull"])
     p.add_argument("--budget", type=int, default=5,
                    help="exploration interactions per explore instance (the paper's budget)")
-    p.add_argument("--similarity-bar", type=float, default=ExploreConfig.similarity_bar,
+    p.add_argument("--similarity-bar", type=float, default=1.0,
                    help="mean similarity at which an object is no longer explored (the "
-                        "request's similarity_bar)")
+                        "request's similarity_bar; default 1.0: never, so every rule spends "
+                        f"the same budget; the paper stops at {ExploreConfig.similarity_bar})")
     p.add_argument("--explore-instances", type=int, default=6,
                    help="EXPLORE-split instances in the scene while exploring")
     p.add_argument("--test-instances", type=int, default=10,
@@ -53,8 +59,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--checkpoint", default=None,
                    help="model of the primitive (default: shipped checkpoints/w2e_cfw_*.pt)")
     p.add_argument("--out", default="results/demo", help="directory for the PNGs and summary")
-    p.add_argument("--strategy", default="similarity", choices=list(STRATEGIES),
-                   help=f"the planner's exploration rule: {describe_rules()}")
+    p.add_argument("--rules", nargs="+", default=list(dict.fromkeys([BEST_RULE, "similarity"])),
+                   choices=list(STRATEGIES), metavar="RULE",
+                   help="exploration rules run one after the other from the same model and "
+                        f"the same start (default: {BEST_RULE} and similarity): "
+                        f"{describe_rules()}")
+    p.add_argument("--strategy", default=None, choices=list(STRATEGIES),
+                   help="one rule only (as --rules RULE)")
     p.add_argument("--seed", type=int, default=0,
                    help="the planner's seed (candidate sampling, start states)")
     p.add_argument("--replay-data", default="",
@@ -145,6 +156,7 @@ def run(a: argparse.Namespace) -> int:
     except ValueError as e:
         print(f"w2e demo: {e}", file=sys.stderr)
         return 2
+    rules = [a.strategy] if a.strategy else list(dict.fromkeys(a.rules))
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     domain = a.domain_id if a.domain_id is not None else pick_domain_id()
@@ -154,9 +166,12 @@ def run(a: argparse.Namespace) -> int:
              + (["-p", f"replay_data:={_replay_arg(a.replay_data)}"] if a.replay_data
                 else []),
              "planner": ["-p", f"exploration_log_dir:={(out / 'exploration').resolve()}",
-                         "-p", f"strategy:={a.strategy}", "-p", f"seed:={a.seed}"]}
-    print(f"[demo] {a.category} ({a.primitive}), model {ckpt}; test {test}, explore {explore}")
+                         "-p", f"strategy:={rules[0]}", "-p", f"seed:={a.seed}"]}
+    total = a.budget * len(explore)
+    print(f"[demo] {a.category} ({a.primitive}), model {ckpt}; test {test}, explore {explore}; "
+          f"rules {', '.join(rules)}, {total} interactions each")
     t_all = time.perf_counter()
+    runs: dict[str, dict] = {}
     # a loaded machine (the inference node reading its checkpoints and replay data beside
     # other jobs) once needed more than 60 s: the services get the same 180 s as the nodes
     with Stack(params=a.params_file, env=env, extra_args=extra,
@@ -167,37 +182,144 @@ def run(a: argparse.Namespace) -> int:
                   f"{READY_TIMEOUT_S:.0f} s (run without --quiet-nodes to see the nodes' "
                   "output)", file=sys.stderr)
             return 1
+        print(f"[demo] stack up in {time.perf_counter() - t_all:.0f} s")
         pngs = [_heatmaps(w2e, a.category, test[0], a.primitive, out, "before")]
         before = _manipulate_each(w2e, a.category, test, a.primitive, "before")
-        explored = w2e.explore(
-            a.category, instances=explore, primitive=a.primitive, budget=a.budget,
-            similarity_bar=a.similarity_bar,
-            on_progress=lambda s: print(
-                f"[demo]   step {s.step}: object {s.action.object_id} similarity "
-                f"{s.predicted_similarity:.2f} -> {'success' if s.success else 'no motion'} "
-                f"(motion {s.motion:+.3f}), mean similarity {s.mean_similarity:.3f}"))
-        print(f"[demo] explore: {explored.message}")
-        after = _manipulate_each(w2e, a.category, test, a.primitive, "after")
-        pngs.append(_heatmaps(w2e, a.category, test[0], a.primitive, out, "after"))
+        for k, rule in enumerate(rules):
+            if k:
+                w2e.reset_model()  # every rule starts from the shipped model
+            w2e.set_strategy(rule, seed=a.seed)
+            t_rule = time.perf_counter()
+            print(f"[demo] rule {k + 1}/{len(rules)}: {rule}")
+            explored = w2e.explore(
+                a.category, instances=explore, primitive=a.primitive, budget=a.budget,
+                similarity_bar=a.similarity_bar, session=f"demo_{rule}",
+                on_progress=lambda s, t0=t_rule: print(
+                    f"[demo]   {s.step}/{total} ({time.perf_counter() - t0:.0f} s): object "
+                    f"{s.action.object_id} similarity {s.predicted_similarity:.2f} -> "
+                    f"{'success' if s.success else 'no motion'} (motion {s.motion:+.3f})"))
+            print(f"[demo] explore ({rule}): {explored.message}")
+            after = _manipulate_each(w2e, a.category, test, a.primitive, f"after {rule}")
+            pngs.append(_heatmaps(w2e, a.category, test[0], a.primitive, out, f"after_{rule}"))
+            runs[rule] = {"after": _per_instance(test, after),
+                          "success_rate_after": after.success_rate,
+                          "explore": {"ok": explored.success, "message": explored.message,
+                                      "interactions": explored.interactions_used,
+                                      "final_mean_similarity": explored.final_mean_similarity,
+                                      "checkpoint": explored.checkpoint_path},
+                          "seconds": {"explore": explored.seconds,
+                                      "manipulate_after": after.seconds}}
+    first = rules[0]
     summary = {
         "category": a.category, "primitive": a.primitive, "checkpoint": str(ckpt),
         "test_instances": test, "explore_instances": explore, "validate": a.validate,
-        "budget": a.budget,
-        "similarity_bar": a.similarity_bar, "strategy": a.strategy, "seed": a.seed,
-        "replay_data": a.replay_data, "params_file": a.params_file or "",
-        "success_rate_before": before.success_rate, "success_rate_after": after.success_rate,
-        "before": _per_instance(test, before), "after": _per_instance(test, after),
-        "explore": {"ok": explored.success, "message": explored.message,
-                    "interactions": explored.interactions_used,
-                    "final_mean_similarity": explored.final_mean_similarity,
-                    "checkpoint": explored.checkpoint_path},
-        "seconds": {"manipulate_before": before.seconds, "explore": explored.seconds,
-                    "manipulate_after": after.seconds, "total": time.perf_counter() - t_all},
+        "budget": a.budget, "similarity_bar": a.similarity_bar, "rules": rules,
+        "seed": a.seed, "replay_data": a.replay_data, "params_file": a.params_file or "",
+        "success_rate_before": before.success_rate, "before": _per_instance(test, before),
+        "runs": runs,
+        # the first rule's run at the top level too (bench/demo_seeds.py reads one rule so)
+        "strategy": first, "after": runs[first]["after"],
+        "success_rate_after": runs[first]["success_rate_after"],
+        "explore": runs[first]["explore"],
+        "seconds": {"manipulate_before": before.seconds, "total": time.perf_counter() - t_all},
         "heatmaps": [str(p) for p in pngs],
     }
+    summary["plot"] = str(success_plot(summary, out / "success_rates.png"))
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
-    print(f"\nsample success on {len(test)} unseen {a.category} instances ({a.primitive}): "
-          f"before {before.success_rate:.0%}, after exploring {explored.interactions_used} "
-          f"interaction(s) {after.success_rate:.0%}")
-    print(f"heatmaps: {', '.join(str(p) for p in pngs)}; summary: {out / 'summary.json'}")
-    return 0 if explored.success else 1
+    print()
+    print(report(summary, recorded_runs()))
+    print(f"\nplot: {summary['plot']}; heatmaps: {', '.join(str(p) for p in pngs)}; "
+          f"summary: {out / 'summary.json'} ({summary['seconds']['total']:.0f} s)")
+    return 0 if all(r["explore"]["ok"] for r in runs.values()) else 1
+
+
+def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """95 % Wilson interval of a success rate k/n: honest at 10 trials, unlike k/n +- 2 se."""
+    if n == 0:
+        return 0.0, 1.0
+    p = k / n
+    mid = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return max(0.0, mid - half), min(1.0, mid + half)
+
+
+def _count(outcomes: list[dict]) -> int:
+    return sum(o["success"] for o in outcomes)
+
+
+def recorded_runs(path: Path | None = None) -> dict | None:
+    """The demo's ten-seed record (bench/demo_seeds.py), where the source tree has it."""
+    path = path or Path(__file__).resolve().parents[1] / "bench" / "results" / "demo_seeds" / \
+        "demo_seeds.json"
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def report(summary: dict, recorded: dict | None = None) -> str:
+    """What the run showed, in words a user reads: each rule's before -> after with its 95 %
+    interval and the per-instance pairing, each rule against the first (rule - baseline), and
+    what ten seeds of the same demo gave, so that one run is read as one draw."""
+    before = summary["before"]
+    n = len(before)
+    b = _count(before)
+    lines = [f"success on {n} unseen {summary['category']} instances ({summary['primitive']}), "
+             f"95 % Wilson intervals:"]
+    lo, hi = wilson(b, n)
+    lines.append(f"  before exploring: {b}/{n} [{lo:.0%}, {hi:.0%}]")
+    rules = summary["rules"]
+    for rule in rules:
+        r = summary["runs"][rule]
+        k = _count(r["after"])
+        lo, hi = wilson(k, n)
+        pairs = list(zip(r["after"], before, strict=True))
+        gained = sum(o["success"] and not p["success"] for o, p in pairs)
+        lost = sum(p["success"] and not o["success"] for o, p in pairs)
+        lines.append(f"  after {r['explore']['interactions']} interactions with {rule}: "
+                     f"{k}/{n} [{lo:.0%}, {hi:.0%}] (instances gained {gained}, lost {lost})")
+    base = rules[0]
+    for rule in rules[1:]:
+        diff = _count(summary["runs"][rule]["after"]) - _count(summary["runs"][base]["after"])
+        lines.append(f"  {rule} - {base}, after: {diff:+d} of {n} (same instances, same spend)")
+    if recorded:
+        lines.append("one run is one draw; ten seeds of the demo (bench/results/demo_seeds, "
+                     "bar 0.9, so similarity spent less):")
+        for rule, r in recorded.get("strategies", {}).items():
+            after = [s["after"] for s in r["per_seed"]]
+            lines.append(f"  {rule}: {r['before']}/{r['trials']} -> {r['after']}/{r['trials']}, "
+                         f"one seed's after from {min(after)} to {max(after)} of "
+                         f"{r['trials'] // len(after)}")
+    return "\n".join(lines)
+
+
+def success_plot(summary: dict, path: Path) -> Path:
+    """Bars of the success rate before and after each rule, with the Wilson intervals."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = len(summary["before"])
+    labels = ["before"] + [f"after {r}\n({summary['runs'][r]['explore']['interactions']} "
+                           "interactions)" for r in summary["rules"]]
+    counts = [_count(summary["before"])] + [_count(summary["runs"][r]["after"])
+                                            for r in summary["rules"]]
+    rates = [k / n for k in counts]
+    cis = [wilson(k, n) for k in counts]
+    err = [[r - lo for r, (lo, _) in zip(rates, cis, strict=True)],
+           [hi - r for r, (_, hi) in zip(rates, cis, strict=True)]]
+    fig, ax = plt.subplots(figsize=(1.8 + 1.6 * len(labels), 3.6))
+    ax.bar(range(len(labels)), rates, yerr=err, capsize=6,
+           color=["#999999"] + ["#d95f02", "#1b9e77", "#7570b3", "#e7298a"][:len(labels) - 1])
+    for i, k in enumerate(counts):
+        ax.text(i, rates[i] + 0.02, f"{k}/{n}", ha="center", va="bottom")
+    ax.set_xticks(range(len(labels)), labels)
+    ax.set_ylim(0, 1)
+    ax.set_ylabel("success on unseen instances")
+    ax.set_title(f"{summary['category']} {summary['primitive']}, seed {summary['seed']} "
+                 "(95 % Wilson intervals)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
