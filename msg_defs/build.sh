@@ -5,11 +5,13 @@
 # (tf2_msgs, control_msgs, franka_msgs: only the types the stack uses, upstream/README.md),
 # each skipped where another install (a sourced ROS 2) already provides it.
 #
-#   bash msg_defs/build.sh [VENV]        (default: .venv next to msg_defs/)
+#   bash msg_defs/build.sh [VENV]        (default: .venv next to msg_defs/; build/ holds its
+#                                         build, another venv builds in VENV/build/)
 #
 # Why not colcon: colcon and ros2cli are not on the package index. Why the patching: the
 # wheels' exported CMake files name the wheel build host's Python include directories
-# (/opt/python/cp311-cp311/...), which do not exist here (DESIGN §7). Re-running is cheap:
+# (/opt/python/cp311-cp311/... for the cp311 wheels, cp312-cp312 for the cp312 ones), which do
+# not exist on this machine: they are pointed at the venv's Python. Re-running is cheap:
 # the patch is skipped once applied and CMake/ninja rebuild only what changed.
 set -euo pipefail
 
@@ -18,7 +20,11 @@ ROOT="$(dirname "$HERE")"
 VENV="${1:-$ROOT/.venv}"
 VENV="$(cd "$VENV" && pwd)"
 PY="$VENV/bin/python"
-BUILD="${W2E_MSGS_BUILD_DIR:-$ROOT/build/w2e_msgs}"
+# the build folders: build/ for the default .venv; another venv (another Python, another
+# prefix) builds in its own, so neither reuses a configuration made for the other
+if [ -n "${W2E_MSGS_BUILD_DIR:-}" ]; then BUILD="$W2E_MSGS_BUILD_DIR"
+elif [ "$VENV" = "$ROOT/.venv" ]; then BUILD="$ROOT/build/w2e_msgs"
+else BUILD="$VENV/build/w2e_msgs"; fi
 
 for tool in cmake ninja g++; do
   command -v "$tool" >/dev/null || { echo "[w2e_msgs] missing '$tool' (apt: cmake ninja-build g++)" >&2; exit 1; }
@@ -36,15 +42,16 @@ if ! _ROS_WHEELS_BOOTSTRAP_COMPLETE=1 "$PY" -c 'import catkin_pkg, em, lark' 2>/
 fi
 
 # --- 2. point the wheels' exported CMake files at this machine's Python and numpy ----------
-read -r PY_INC NP_INC < <(_ROS_WHEELS_BOOTSTRAP_COMPLETE=1 "$PY" -c \
-  'import sysconfig, numpy; print(sysconfig.get_paths()["include"], numpy.get_include())')
-HOST_PY=/opt/python/cp311-cp311
+read -r PY_INC NP_INC PY_VER PY_TAG < <(_ROS_WHEELS_BOOTSTRAP_COMPLETE=1 "$PY" -c \
+  'import sys, sysconfig, numpy; v = sys.version_info
+print(sysconfig.get_paths()["include"], numpy.get_include(), f"{v[0]}.{v[1]}", f"cp{v[0]}{v[1]}")')
+HOST_PY=/opt/python/$PY_TAG-$PY_TAG
 mapfile -t stale < <(grep -rlF --include='*.cmake' "$HOST_PY" "$VENV/share" "$VENV/lib/cmake" 2>/dev/null || true)
 if [ "${#stale[@]}" -gt 0 ]; then
   echo "[w2e_msgs] patching ${#stale[@]} CMake files: $HOST_PY -> $PY_INC, $NP_INC"
   # the numpy path first: it contains the generic prefix
-  sed -i -e "s#$HOST_PY/lib/python3.11/site-packages/numpy/_core/include#$NP_INC#g" \
-         -e "s#$HOST_PY/include/python3.11#$PY_INC#g" "${stale[@]}"
+  sed -i -e "s#$HOST_PY/lib/python$PY_VER/site-packages/numpy/_core/include#$NP_INC#g" \
+         -e "s#$HOST_PY/include/python$PY_VER#$PY_INC#g" "${stale[@]}"
   left=$(grep -rlF --include='*.cmake' "$HOST_PY" "$VENV/share" 2>/dev/null | wc -l || true)
   [ "$left" = 0 ] || echo "[w2e_msgs] warning: $left CMake files still name $HOST_PY" >&2
 fi
@@ -62,6 +69,11 @@ start=$(date +%s)
 # build_package SOURCE_DIR BUILD_DIR: configure (once), build and install into the venv prefix
 build_package() {
   local src="$1" build="$2"
+  if [ -f "$build/CMakeCache.txt" ] &&
+     ! grep -qxF "CMAKE_INSTALL_PREFIX:PATH=$VENV" "$build/CMakeCache.txt"; then
+    echo "[w2e_msgs] $build was configured for another venv: configuring it anew"
+    rm -rf "$build"
+  fi
   if [ ! -f "$build/build.ninja" ]; then
     cmake -S "$src" -B "$build" -G Ninja \
       -DCMAKE_BUILD_TYPE=Release \

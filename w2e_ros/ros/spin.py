@@ -1,4 +1,6 @@
-"""The one way every node of the stack runs (STYLE.md's ``main()`` shape, written once)."""
+"""The one way every node of the stack runs, written once: ``rclpy.init``; build the node; spin
+inside ``try``; ``except (KeyboardInterrupt, ExternalShutdownException)``; ``finally``
+destroy the node and ``rclpy.try_shutdown()`` (the shape of the ``ros2/examples`` nodes)."""
 
 from __future__ import annotations
 
