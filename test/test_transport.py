@@ -146,3 +146,30 @@ def test_make_clean_ros_leaves_what_another_process_maps(fake_port):
         holder.wait()
     out = subprocess.run(CLEAN_DRY_RUN, capture_output=True, text=True, check=True)
     assert all(str(f) in out.stdout for f in files)  # what `make clean-ros` would remove now
+
+
+HOLD_DOMAIN = """
+import sys
+from w2e_ros.ros.processes import pick_domain_id
+print(pick_domain_id(), flush=True)
+sys.stdin.readline()
+"""
+
+
+def test_a_domain_another_living_process_picked_is_never_picked_until_it_exits():
+    """Two runs at once on one host once shared domain 117 and one's client called the other's
+    planner: pick_domain_id holds a lock per domain for the life of the process."""
+    from w2e_ros.ros import processes
+
+    holder = subprocess.Popen([sys.executable, "-c", HOLD_DOMAIN], stdin=subprocess.PIPE,
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        held = int(holder.stdout.readline())
+        picked = {processes.pick_domain_id() for _ in range(99)}
+        assert held not in picked and len(picked) == 99
+    finally:
+        holder.communicate("\n", timeout=30)
+    # its lock went with it: the next round of this process's order reaches the domain again
+    assert held in {processes.pick_domain_id() for _ in range(100)}
+    # and this process holds only its latest few picks, not every domain it ever used
+    assert len(processes._DOMAIN_LOCKS) == processes.DOMAIN_LOCKS_HELD

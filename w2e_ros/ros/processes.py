@@ -9,12 +9,14 @@ TERM again, then KILL; killed nodes leave Fast DDS shared-memory files in /dev/s
 from __future__ import annotations
 
 import argparse
+import fcntl
 import itertools
 import os
 import re
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Iterable
 from pathlib import Path
@@ -62,11 +64,45 @@ _DOMAIN_BASE = (os.getpid() * 7 + int(time.time() * 1000)) % 100
 _DOMAIN_COUNT = itertools.count()
 
 
+_DOMAIN_LOCKS: dict[int, int] = {}  # domain -> the fd of its lock file, latest last
+DOMAIN_LOCKS_HELD = 8  # a process holds its latest picks only (a test session makes hundreds)
+DOMAIN_LOCK_DIR = Path(tempfile.gettempdir()) / "w2e_domains"
+
+
+def _claim_domain(domain: int) -> bool:
+    """Hold ``domain``'s lock file (flock: freed when this process dies, by any death) until
+    this process exits or has picked DOMAIN_LOCKS_HELD newer domains; False when another living
+    process holds it."""
+    if domain in _DOMAIN_LOCKS:
+        _DOMAIN_LOCKS[domain] = _DOMAIN_LOCKS.pop(domain)  # the latest again
+        return True
+    try:
+        DOMAIN_LOCK_DIR.mkdir(parents=True, exist_ok=True)
+        fd = os.open(DOMAIN_LOCK_DIR / f"{domain}.lock", os.O_RDWR | os.O_CREAT, 0o666)
+    except OSError:
+        return True  # no lock directory (read-only /tmp): the order below still spreads runs
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        return False
+    _DOMAIN_LOCKS[domain] = fd
+    while len(_DOMAIN_LOCKS) > DOMAIN_LOCKS_HELD:
+        os.close(_DOMAIN_LOCKS.pop(next(iter(_DOMAIN_LOCKS))))
+    return True
+
+
 def pick_domain_id() -> int:
-    """A ROS domain id in [100, 199] unlikely to collide with a concurrent run on this host,
-    and not given twice by one process until all 100 were: a domain used again in a process
-    meets the Fast DDS participant ids and shared-memory ports of its earlier use."""
-    return 100 + (_DOMAIN_BASE + 37 * next(_DOMAIN_COUNT)) % 100
+    """A ROS domain id in [100, 199] that no other living process on this host picked (a lock
+    file per domain: two test runs or benchmarks at once once shared domain 117, and one's
+    client called the other's planner), and not given twice by one process until all 100 were:
+    a domain used again in a process meets the Fast DDS participant ids and shared-memory
+    ports of its earlier use."""
+    for _ in range(100):
+        domain = 100 + (_DOMAIN_BASE + 37 * next(_DOMAIN_COUNT)) % 100
+        if _claim_domain(domain):
+            return domain
+    raise RuntimeError(f"every ROS domain 100..199 is held by another process ({DOMAIN_LOCK_DIR})")
 
 
 def stop_process(proc: subprocess.Popen, timeout: float = 5.0, group: bool = True) -> int | None:
