@@ -98,6 +98,10 @@ class InferenceSettings:
     fit_target: float = setting_param(FinetuneConfig, "fit_target", min=0.0, max=1.0)
     anchor: float = setting_param(FinetuneConfig, "anchor", min=0.0)
     prior: float = setting_param(FinetuneConfig, "prior", min=0.0)
+    guard: str = setting_param(FinetuneConfig, "guard")
+    guard_weight: float = setting_param(FinetuneConfig, "guard_weight", min=0.0, max=1.0)
+    guard_folds: int = setting_param(FinetuneConfig, "guard_folds", min=2, max=100)
+    guard_metric: str = setting_param(FinetuneConfig, "guard_metric")
     replay_timeout_s: float = param(
         300.0, "longest wait of update_model for the replay, which is encoded in the "
         "background after start-up (predict_maps answers meanwhile)", min=0.0)
@@ -223,7 +227,9 @@ class InferenceNode(Node):
             replay = load_training_data_from(data, method, combo, primitive, source=str(source))
         cfg = FinetuneConfig(finetune=s.finetune, finetune_steps=s.finetune_steps,
                              finetune_lr=s.finetune_lr, replay_fraction=s.replay_fraction,
-                             fit_target=s.fit_target, anchor=s.anchor, prior=s.prior)
+                             fit_target=s.fit_target, anchor=s.anchor, prior=s.prior,
+                          guard=s.guard, guard_weight=s.guard_weight,
+                          guard_folds=s.guard_folds, guard_metric=s.guard_metric)
         explorer = W2EExplorer(model, cfg, aff_categories=aff_cats, sim_categories=sim_cats,
                                train_similarity=True, seed=s.seed,
                                balanced_similarity=similarity_is_balanced(meta))

@@ -17,6 +17,12 @@ feature propagation, on cached set-abstraction levels | every weight."""
 SIMILARITY_UPDATES = ("finetune", "frozen")
 """Whether each fit also trains the similarity head on what was explored (the reference)
 or leaves it as calibrated."""
+GUARDS = ("off", "average", "accept")
+"""What the model serves after a fit (core.exploration.guard): the adapted weights | their
+mix with the prior's | the adapted ones only if an out-of-fold check on the explored set beats
+the prior, else the prior's."""
+GUARD_METRICS = ("loss", "auroc")
+"""How the acceptance check compares: class-balanced log-loss | AUROC (out of fold)."""
 LEARNABILITY_SELECTIONS = ("random", "oracle", "oracle_stratified", "confident", "half_success",
                            "unfamiliar", "unfamiliar_half", "unfamiliar_failure",
                            "uncertain_failure")
@@ -71,6 +77,19 @@ class FinetuneConfig:
     similarity_update: str = setting(
         "finetune", "finetune: each fit also trains the similarity head on what was explored "
         "(the reference); frozen: it stays as calibrated", choices=SIMILARITY_UPDATES)
+    guard: str = setting(
+        "off", "what the model serves after a fit (core.exploration.guard; every fit continues "
+        "from the adapted weights): off: the adapted weights; average: prior + guard_weight x "
+        "(adapted - prior); accept: the adapted ones only if, fitted from the prior on all "
+        "but one of guard_folds folds of the explored set, they predict the held-out folds "
+        "better than the prior (guard_metric), else the prior", choices=GUARDS)
+    guard_weight: float = setting(0.5, "with guard average: the adapted weights' share",
+                                  min=0.0, max=1.0)
+    guard_folds: int = setting(5, "with guard accept: folds (by cloud) of the explored set",
+                               min=2)
+    guard_metric: str = setting("loss", "with guard accept: loss: a lower class-balanced "
+                                "log-loss than the prior's; auroc: a higher AUROC",
+                                choices=GUARD_METRICS)
 
 
 SETTINGS_RENAMED = {"sim_bar": "similarity_bar"}

@@ -33,6 +33,7 @@ import torch.nn.functional as F
 
 from w2e_ros.core.dataset.interactions import InteractionData
 from w2e_ros.core.exploration.config import FINETUNE_MODES, SIMILARITY_UPDATES, FinetuneConfig
+from w2e_ros.core.exploration.guard import guarded_fit
 from w2e_ros.core.exploration.strategies import Scored
 from w2e_ros.core.infra.threads import torch_threads
 from w2e_ros.core.model.metrics import auroc
@@ -160,6 +161,10 @@ class W2EExplorer:
         self.acc = RunningAccuracy()  # explored interactions
         self.replay_acc = RunningAccuracy()  # replayed ones (keys: row in replay_rows)
         self.fit_log: list[dict[str, float]] = []
+        # what the guard (core.exploration.guard) serves besides the adapted weights: the
+        # trained ones, and the last fit's when the model holds something else
+        self.prior = self.snapshot()
+        self.adapted: dict[str, torch.Tensor] | None = None
         if replay is not None:
             self.attach_replay(replay)
 
@@ -459,7 +464,7 @@ class W2EExplorer:
             self.replay_rows.success[self.replay_rows.aff].any()
         self._train_affordance = bool(pos)
         with torch_threads(1) if self.heads_only else contextlib.nullcontext():
-            return self._fit()
+            return guarded_fit(self)  # cfg.guard: what the model then serves
 
     def _fit(self) -> dict[str, float]:
         cfg = self.cfg
