@@ -138,6 +138,9 @@ def guarded_fit(ex: W2EExplorer) -> dict[str, float]:
         ok, s_prior, s_adapted = judge(p_prior, p_adapted, y, cfg.guard_metric)
         check = {"guard_accepted": float(ok), "guard_prior": s_prior,
                  "guard_adapted": s_adapted}
+        for m in GUARD_METRICS:  # both measures, whichever decides (to compare them)
+            _, check[f"guard_prior_{m}"], check[f"guard_adapted_{m}"] = judge(
+                p_prior, p_adapted, y, m)
     if ex.adapted is not None:  # the previous fit's weights, not what was served
         _load(ex, ex.adapted)
     stats = ex._fit()
