@@ -49,6 +49,7 @@ import zlib
 from dataclasses import dataclass, replace
 
 import numpy as np
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
@@ -121,6 +122,16 @@ class BridgeSettings:
     arm_base_pose: list[float] = param(list(kin.DEFAULT_BASE_POSE),
                                        f"robot panda: {kin.BASE_POSE_DESCRIPTION}")
     joint_state_rate_hz: float = param(50.0, "robot panda: joint_states rate (Hz)", min=1.0)
+    publish_camera: bool = param(True, "publish camera/points; false stops the stream while "
+                                 "the robot side serves on, as a camera that fails (live: ros2 "
+                                 "param set sim_bridge publish_camera false)")
+    hold_trials: bool = param(False, "simulated fault: follow_waypoints goals are accepted and "
+                              "held unanswered while true, then run, as a robot controller that "
+                              "hangs (live, for fault injection: bench/fault_injection.py)")
+
+
+# parameters that change a running bridge (ros2 param set); every other one is read at start-up
+LIVE_PARAMETERS = ("publish_camera", "hold_trials")
 
 
 @dataclass
@@ -166,6 +177,10 @@ class SimBridgeNode(Node):
             raise ValueError(f"robot must be one of {ROBOTS}, got {self.settings.robot!r}")
         self._live = None  # robot panda: sim_bridge.panda.LiveArm of the current scene
         self._stop = threading.Event()
+        self._released = threading.Event()  # hold_trials is false: trials run
+        if not self.settings.hold_trials:
+            self._released.set()
+        self.add_on_set_parameters_callback(self._on_set_parameters)
 
         sensor_group = MutuallyExclusiveCallbackGroup()
         command_group = MutuallyExclusiveCallbackGroup()
@@ -358,7 +373,28 @@ class SimBridgeNode(Node):
              MOVABLE_FIELD: obs.movable[idx].astype(np.uint8)},
             frame_id=self.settings.frame_id, stamp=stamp)
 
+    def _on_set_parameters(self, params) -> SetParametersResult:
+        """``publish_camera`` and ``hold_trials`` change a running bridge; the rest needs a
+        restart."""
+        for p in params:
+            if p.name not in (*LIVE_PARAMETERS, "use_sim_time"):
+                return SetParametersResult(successful=False, reason=(
+                    f"{p.name} is read at start-up: restart the bridge to change it (live: "
+                    f"{', '.join(LIVE_PARAMETERS)})"))
+        for p in params:
+            if p.name in LIVE_PARAMETERS:
+                setattr(self.settings, p.name, bool(p.value))
+                self.get_logger().warn(f"{p.name} = {bool(p.value)}")
+        if self.settings.hold_trials:
+            self._released.clear()
+        else:
+            self._released.set()
+        return SetParametersResult(successful=True)
+
     def _on_camera_timer(self) -> None:
+        if not self.settings.publish_camera:  # the camera is out; the robot side reports on
+            self._publish_joints()
+            return
         if self.settings.publish_rate_hz <= 0 and not self._dirty:
             return
         try:
@@ -638,6 +674,10 @@ class SimBridgeNode(Node):
     def _on_follow(self, goal_handle) -> FollowWaypoints.Result:
         goal = goal_handle.request
         result = FollowWaypoints.Result(reached=False, valid=False, contact_joint=-1)
+        if not self._released.is_set():
+            self.get_logger().warn("follow_waypoints: trial held (hold_trials)")
+            while not self._released.wait(0.2) and not self._stop.is_set():
+                pass
         try:
             result = self.follow(goal, goal_handle.publish_feedback)
         except ValueError as err:

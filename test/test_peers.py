@@ -206,6 +206,29 @@ def test_an_announcement_seen_late_is_not_a_restart_of_the_call(planner):
     assert "inference_node restarted" in node.peer_check("predict_maps")()
 
 
+def test_a_server_restarted_during_a_call_that_saw_no_announcement_is_a_restart(planner):
+    """Issue 41's 40 s case: a planner restarted just before the call had not yet heard the
+    bridge's announcement when the call pinned; the bridge then restarted, the call pinned the
+    new process as the first one seen and waited observe_timeout_s for the lost scene. A
+    process started during the call is a restart whether or not one was pinned; one started
+    before it, seen late, is the call's own."""
+    node = planner[0]
+    watch = node.peers["predict_maps"]
+    node.pin_peers()  # nothing announced yet
+    check = node.peer_check("predict_maps")
+    assert node.pinned["predict_maps"] is None and check() is None  # the call's first request
+    watch._on_instance(String(data="host:1:1000"))  # the server it reached, seen late
+    assert check() is None and node.pinned["predict_maps"] == "host:1:1000"
+    # the next call: again nothing seen when it pins, its first request goes out, and then the
+    # server restarts; the new process is the first one the planner hears of
+    watch._instance = None
+    node.pin_peers()
+    check = node.peer_check("predict_maps")
+    assert check() is None
+    watch._on_instance(String(data=f"host:2:{time.time_ns() + 10**9}"))
+    assert "inference_node restarted" in check()
+
+
 def _dead(planner) -> None:
     """A server that announced itself, then was SIGKILLed: the planner has seen it die."""
     node, env, servers = planner

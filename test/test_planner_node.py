@@ -104,7 +104,9 @@ def _answer(proc: subprocess.Popen, timeout: float) -> dict:
 
 def test_a_second_request_while_explore_runs_answers_busy_at_once(tmp_path):
     env = ros_env(domain_id=pick_domain_id(), log_dir=tmp_path / "ros_log")
+    # no camera at all: without a longer frame_timeout_s the wait would end at it (5 s)
     extra = {"planner": ["-p", f"observe_timeout_s:={OBSERVE_TIMEOUT_S}",
+                         "-p", f"frame_timeout_s:={2 * OBSERVE_TIMEOUT_S}",
                          "-p", f"exploration_log_dir:={tmp_path / 'exploration'}"]}
     with Stack(nodes=["planner"], env=env, output=io.StringIO(), extra_args=extra):
         # the scene is empty (no segmentation node): the first explore waits for objects

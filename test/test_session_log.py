@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -71,6 +73,55 @@ def test_a_line_torn_by_a_crash_is_cut_off_and_the_log_goes_on(tmp_path):
     lines = (run.path / EVENTS).read_text().splitlines()
     assert [json.loads(x)["event"] for x in lines] == ["run", "interaction", "interaction"]
     assert [rec.index for rec in again.interactions] == [1, 2]
+
+
+# a process whose files may not grow past LIMIT bytes (RLIMIT_FSIZE, SIGXFSZ ignored): a write
+# across it is cut short and the next one fails (EFBIG), as a filling disk cuts a write short
+# and then says ENOSPC; no root needed (a small tmpfs would need it)
+_APPEND_CAPPED = """
+import pickle, resource, signal, sys
+from w2e_ros.core.exploration.session_log import LogWriteError, open_session
+root, limit, points = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+run = open_session(root, "s", "door", "pull")
+a, r = pickle.loads(sys.stdin.buffer.read())
+import numpy as np
+resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+try:
+    run.append(1, None, a, r, np.zeros((points, 3)), np.zeros((points, 3)))
+    print("written")
+except LogWriteError as e:
+    print("refused:", e)
+"""
+
+
+@pytest.mark.parametrize("where", ["line", "cloud"])
+def test_a_write_the_disk_cannot_take_is_undone_and_the_log_goes_on(tmp_path, where):
+    import pickle
+
+    run = open_session(tmp_path, "s", "door", "pull")
+    run.start({})
+    for k in range(8):  # a log longer than one small cloud file
+        a, r, _, _ = _interaction(k)
+        run.append(k, None, a, r, np.zeros((4, 3)), np.zeros((4, 3)))
+    before = (run.path / EVENTS).read_bytes()
+    # "line": the cloud (4 points, < 1 kB) fits, the line is cut 100 bytes in; "cloud": the
+    # cloud (4000 points, ~100 kB) is cut
+    limit, points = (len(before) + 100, 4) if where == "line" else (len(before) + 100, 4000)
+    a, r, _, _ = _interaction(8)
+    out = subprocess.run([sys.executable, "-c", _APPEND_CAPPED, str(tmp_path), str(limit),
+                          str(points)], input=pickle.dumps((a, r)), capture_output=True,
+                         check=True).stdout.decode()
+    assert out.startswith("refused: exploration log ") and "cannot write" in out, out
+    assert (run.path / EVENTS).read_bytes() == before  # no torn line left
+    assert not list((run.path / "clouds").glob("*.tmp"))
+    # space again: the log goes on where it stopped, every line whole
+    again = open_session(tmp_path, "s", "door", "pull")
+    assert again.count == 8
+    again.append(8, None, a, r, np.zeros((4, 3)), np.zeros((4, 3)))
+    again.end("budget", complete=False, message="")
+    lines = [json.loads(x) for x in (run.path / EVENTS).read_text().splitlines()]
+    assert [e["index"] for e in lines if e["event"] == "interaction"] == list(range(1, 10))
 
 
 @pytest.mark.parametrize("name", ["../up", "a/b", ".hidden", "", "x" * 65, "spa ce"])

@@ -6,6 +6,12 @@ the interaction into its primitive's wrist waypoints (``w2e_ros.core.robot.primi
 ``follow_waypoints`` action (the sim bridge, or a Panda adapter), and judges the outcome from
 what the robot measured, so simulated and real trials are judged alike. Feedback names the
 phase: planning, then each waypoint's phase (approach, grasp, pull / push ...), then done.
+A goal SUCCEEDS with the outcome, valid or not, when the interaction was tried (an action that
+cannot be planned, or that the robot could not follow, is an invalid outcome); it is ABORTED
+when nothing is known of it: the robot side unavailable, rejecting it, not answering within
+``trial_timeout_s`` or gone mid-trial, no camera frame to judge it from. The planner records an
+outcome and learns from it; an aborted goal ends its call naming why (a hung robot taught the
+model a failure per interaction before, and spent the budget).
 
 ``outcome_source`` says what success is judged from:
 
@@ -139,11 +145,19 @@ class GripperExecutorNode(Node):
 
         shown: list = []  # (action, plan) once planned: the markers follow the outcome
 
-        def fail(reason: str) -> ExecuteInteraction.Result:
-            self.get_logger().error(f"interaction refused: {reason}")
+        def fail(reason: str, carried_out: bool = True) -> ExecuteInteraction.Result:
+            """An invalid outcome. ``carried_out``: the interaction was tried (refused as
+            planned, the robot could not follow it): the goal succeeds with the outcome. Else
+            (the robot side or the camera did not answer) nothing is known of it: the goal
+            aborts, and the caller records nothing."""
+            self.get_logger().error(f"interaction {'refused' if carried_out else 'not done'}: "
+                                    f"{reason}")
             if shown:
                 self._show(*shown, "invalid", f"refused: {reason[:60]}")
-            goal_handle.abort()
+            if carried_out:
+                goal_handle.succeed()
+            else:
+                goal_handle.abort()
             return ExecuteInteraction.Result(outcome=InteractionOutcome(
                 valid=False, success=False, joint_index=-1, reason=reason))
 
@@ -176,10 +190,10 @@ class GripperExecutorNode(Node):
                     return fail(f"outcome_source clouds: no segmented cloud of object "
                                 f"{interaction.object_id} on 'objects' within "
                                 f"{self.settings.cloud_timeout_s:.0f} s (is the segmentation "
-                                "node running?)")
+                                "node running?)", carried_out=False)
             res = self._follow(goal, on_robot_feedback)
-            if isinstance(res, str):
-                return fail(res)
+            if isinstance(res, str):  # the robot side never answered: a trial not known
+                return fail(res, carried_out=False)
             self._last_end = self.get_clock().now() + Duration(
                 seconds=self.settings.cloud_settle_s)
             after = None
@@ -187,7 +201,9 @@ class GripperExecutorNode(Node):
                 after = self._wait_cloud(interaction.object_id, action, self._last_end)
         judged = self._trial(action, res, clouds, before, after)
         if isinstance(judged, str):
-            return fail(judged)
+            # the robot's own "cannot follow" is an outcome; a valid trial that cannot be
+            # judged (no object joints reported) is a setup error, not an interaction
+            return fail(judged, carried_out=not res.valid)
         trial, note = judged
         outcome = trial_result_to_outcome(trial)
         phase("done", n, n)
@@ -251,8 +267,8 @@ class GripperExecutorNode(Node):
                 return "the robot side rejected the trajectory"
             return wait_future(sent.get_result_async(), s.trial_timeout_s, s.robot_action,
                                check=check).result
-        except WaitTimeoutError:
-            return "the robot side did not answer in time"
+        except WaitTimeoutError as err:  # "<robot_action>: no answer within N s ..."
+            return f"the robot side did not answer in time: {err}"
         except StackError as err:  # PeerLostError: "<robot_action>: <why>"
             return str(err)
 

@@ -36,8 +36,10 @@ from w2e_msgs.msg import AffordanceMap, Interaction
 from w2e_msgs.srv import PredictMaps, UpdateModel
 
 from w2e_ros.core.exploration.config import FinetuneConfig
-from w2e_ros.core.exploration.explore import Candidates, Executed, map_candidates
-from w2e_ros.core.exploration.finetune import W2EExplorer, similarity_is_balanced
+from w2e_ros.core.exploration.explore import Executed, map_candidates
+from w2e_ros.core.exploration.finetune import W2EExplorer, explorer_for
+from w2e_ros.core.exploration.session_log import run_checkpoints
+from w2e_ros.core.exploration.session_replay import executed_on
 from w2e_ros.core.infra.allocator import keep_freed_memory
 from w2e_ros.core.model.network import W2EModel, default_device, load_model, save_model
 from w2e_ros.core.model.policy import best_first, score_map
@@ -108,6 +110,15 @@ class InferenceSettings:
     threads: int = param(2, "torch CPU threads", min=1, max=256)
     publish_maps: bool = param(True, "publish affordance_map / similarity_map clouds")
     seed: int = param(0, "seed of the node's direction sampling and replay")
+
+
+def finetune_config(s: InferenceSettings) -> FinetuneConfig:
+    """The core's fine-tuning settings of a node with settings ``s`` (its parameters)."""
+    return FinetuneConfig(finetune=s.finetune, finetune_steps=s.finetune_steps,
+                          finetune_lr=s.finetune_lr, replay_fraction=s.replay_fraction,
+                          fit_target=s.fit_target, anchor=s.anchor, prior=s.prior,
+                          guard=s.guard, guard_weight=s.guard_weight,
+                          guard_folds=s.guard_folds, guard_metric=s.guard_metric)
 
 
 def base_primitive(primitive: str) -> str:
@@ -213,26 +224,18 @@ class InferenceNode(Node):
         ``background`` (tens of seconds for the shipped pack on a CPU: the services must not
         wait for it), else before returning."""
         from w2e_ros.core.dataset.interactions import InteractionData
-        from w2e_ros.core.model.training import load_training_data_from, method_categories
+        from w2e_ros.core.model.training import load_training_data_from
 
         s = self.settings
         path = self._checkpoint(primitive)
         model, meta = load_model(path, self.device)
         method, combo = str(meta.get("method", "w2e")), str(meta.get("combo", s.combo))
-        aff_cats, sim_cats = method_categories(method, combo)
         replay = None
         source = self._replay_source()
         if source is not None:  # a replay pack is replayed whole (W2EExplorer.attach_replay)
             data = InteractionData.load(source)
             replay = load_training_data_from(data, method, combo, primitive, source=str(source))
-        cfg = FinetuneConfig(finetune=s.finetune, finetune_steps=s.finetune_steps,
-                             finetune_lr=s.finetune_lr, replay_fraction=s.replay_fraction,
-                             fit_target=s.fit_target, anchor=s.anchor, prior=s.prior,
-                          guard=s.guard, guard_weight=s.guard_weight,
-                          guard_folds=s.guard_folds, guard_metric=s.guard_metric)
-        explorer = W2EExplorer(model, cfg, aff_categories=aff_cats, sim_categories=sim_cats,
-                               train_similarity=True, seed=s.seed,
-                               balanced_similarity=similarity_is_balanced(meta))
+        explorer = explorer_for(model, meta, finetune_config(s), s.seed, s.combo)
         served = _Served(primitive, path, model, meta, explorer)
         self.load_errors.pop(primitive, None)
         self.get_logger().info(f"{primitive}: {path} ({method}/{combo})")
@@ -447,15 +450,11 @@ class InferenceNode(Node):
         steps = int(req.steps) or self.settings.finetune_steps
         executed: list[Executed] = []
         for j, (action, outcome) in enumerate(zip(actions, req.outcomes, strict=True)):
-            d = np.linalg.norm(cloud.points - action.point[None].astype(np.float32), axis=1)
-            pi = int(np.argmin(d))
-            if d[pi] > 0.05:
-                raise ValueError(f"interaction {j}: contact point is {d[pi]:.3f} m from "
-                                 "the nearest cloud point (wrong cloud or frame?)")
-            cand = Candidates(np.array([pi]), action.up[None].astype(np.float32),
-                              action.forward[None].astype(np.float32))
-            executed.append(Executed(cloud, cand, 0, outcome_to_trial_result(outcome),
-                                     update_affordance=bool(req.update_affordance)))
+            try:  # as the offline replay of a session log learns it (session_replay)
+                executed.append(executed_on(cloud, action, outcome_to_trial_result(outcome),
+                                            bool(req.update_affordance)))
+            except ValueError as err:
+                raise ValueError(f"interaction {j}: {err}") from None
         if req.record_only:
             ex.remember(executed)
             stats: dict[str, float] = {}
@@ -478,6 +477,10 @@ class InferenceNode(Node):
             if name:  # the session's own file too, for a later restore
                 path = save_model(self.adapted_path(served.primitive).with_name(name),
                                   served.model, meta)
+                # the run's older saves: the one before this (the planner's log names it
+                # until it has recorded this one) stays
+                for old in [p for p in run_checkpoints(path.parent, name) if p != path][:-1]:
+                    old.unlink(missing_ok=True)
             res.checkpoint_path = str(path)
 
     def _restore(self, primitive: str, checkpoint_name: str) -> None:
@@ -494,6 +497,10 @@ class InferenceNode(Node):
             served.model.load_state_dict(adapted.state_dict())  # in place: the anchor stays
             served.updates = int(meta.get("updates", 0))
         self.served[primitive] = served
+        if path is not None:  # the run's saves the log does not name (never recorded)
+            for other in run_checkpoints(path.parent, checkpoint_name):
+                if other != path:
+                    other.unlink(missing_ok=True)
         used = path if path is not None and path.exists() else served.source
         self.get_logger().info(f"{primitive}: restored {used} for a resumed session")
 

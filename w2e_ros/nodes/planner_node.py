@@ -41,6 +41,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from action_msgs.msg import GoalStatus
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.action.server import ServerGoalHandle
@@ -70,6 +71,7 @@ from w2e_ros.ros.conversions import interaction_to_action
 from w2e_ros.ros.explore_service import (  # noqa: F401 - RosModel, RosWorld: the planner's halves
     BUSY,
     ExploreService,
+    NoFrameError,
     ObservedCloud,
     RosModel,
     RosWorld,
@@ -77,7 +79,7 @@ from w2e_ros.ros.explore_service import (  # noqa: F401 - RosModel, RosWorld: th
 )
 from w2e_ros.ros.futures import StackError, wait_future
 from w2e_ros.ros.params import declare_typed_parameters, describe, param, setting_param
-from w2e_ros.ros.peers import PeerWatch, announce
+from w2e_ros.ros.peers import PeerWatch, announce, started_ns
 from w2e_ros.ros.qos import LATCHED_QOS, RELIABLE_QOS
 from w2e_ros.ros.spin import run_node
 from w2e_ros.ros.state import scoped_dir, state_scope
@@ -122,11 +124,18 @@ class PlannerSettings:
     table_height: float = setting_param(ArmCheck, "table_height")
     service_timeout_s: float = param(120.0, "longest wait for predict_maps / update_model",
                                      min=0.1)
-    execute_timeout_s: float = param(60.0, "longest wait for one executed interaction",
-                                     min=0.1)
+    execute_timeout_s: float = param(150.0, "longest wait for one executed interaction: more "
+                                     "than the executor's server_timeout_s + trial_timeout_s "
+                                     "(+ 2 x cloud_timeout_s), so a robot that hangs is named "
+                                     "by the executor", min=0.1)
     scene_timeout_s: float = param(30.0, "longest wait for load_scene", min=0.1)
     observe_timeout_s: float = param(15.0, "longest wait for a segmented cloud of an object",
                                      min=0.1)
+    frame_timeout_s: float = param(5.0, "longest gap between two segmented frames on objects "
+                                   "while a call waits for one: longer, and the call fails "
+                                   "naming the camera (frames come at the camera's rate, so "
+                                   "none means camera/points or the segmentation stopped)",
+                                   min=0.1)
     connect_timeout_s: float = param(5.0, "longest wait for a server to appear", min=0.0)
     restart_timeout_s: float = param(30.0, "longest wait for a server seen to die (or to be "
                                      "killed) to come back before a call to it fails: a "
@@ -180,6 +189,7 @@ class PlannerNode(Node):
         self.busy = threading.Lock()
         self.objects_cv = threading.Condition()
         self.latest_objects: SegmentedObjects | None = None
+        self.objects_at: float | None = None  # monotonic s the last frame arrived
         # user requests in a reentrant group, so a second request is handled while one runs
         # and answers "busy" at once (self.busy lets one explore/manipulate run at a time);
         # every reply a handler waits for in another group, so the executor's other threads
@@ -199,6 +209,7 @@ class PlannerNode(Node):
                       for name, server in PEERS.items()}
         self.pinned: dict[str, str | None] = {}
         self.pinned_at = 0
+        self.pinned_since: dict[str, int] = {}  # per name: processes started later restarted
         self.progress_pub = self.create_publisher(ExplorationProgress, "exploration_progress",
                                                   RELIABLE_QOS)
         self.create_service(Explore, "explore", self.on_explore, callback_group=self.user_group)
@@ -219,13 +230,20 @@ class PlannerNode(Node):
         of any during the call fails it (the next explore of the session resumes)."""
         self.pinned = {name: watch.current() for name, watch in self.peers.items()}
         self.pinned_at = time.time_ns()
+        self.pinned_since = {name: self.pinned_at for name, cur in self.pinned.items() if cur}
 
     def peer_check(self, name: str) -> Callable[[], str | None]:
         """Why ``name``'s pinned server cannot answer any more (died, restarted), or None."""
         def check() -> str | None:
-            if self.pinned.get(name) is None:  # not announced when pinned: the first one seen
-                self.pinned[name] = self.peers[name].current()
-            return self.peers[name].check(self.pinned[name], self.pinned_at)
+            # none announced when the call pinned (a planner just started, a server just
+            # respawned): the call relies on the name from its first use on (this check runs
+            # before each request), the process serving it then is pinned once seen, and one
+            # started after is a restart (PeerWatch.check)
+            since = self.pinned_since.setdefault(name, time.time_ns())
+            if self.pinned.get(name) is None and (cur := self.peers[name].current()) \
+                    and started_ns(cur) <= since:
+                self.pinned[name] = cur
+            return self.peers[name].check(self.pinned.get(name), since)
         return check
 
     def wait_serving(self, name: str) -> None:
@@ -277,6 +295,8 @@ class PlannerNode(Node):
         except StackError:
             handle.cancel_goal_async()
             raise
+        if res.status != GoalStatus.STATUS_SUCCEEDED:  # not carried out: nothing to record
+            raise StackError(f"execute_interaction: {res.result.outcome.reason or 'aborted'}")
         return res.result.outcome
 
     # parameters a call reads when it starts; every other one is read at start-up
@@ -313,12 +333,19 @@ class PlannerNode(Node):
     def on_objects(self, msg: SegmentedObjects) -> None:
         with self.objects_cv:
             self.latest_objects = msg
+            self.objects_at = time.monotonic()
             self.objects_cv.notify_all()
 
     def wait_for_objects(self, ids: Sequence[int] | None, newer_than: Time | None,
-                         timeout: float) -> dict[int, Any]:
-        """The segmented objects ``ids`` (None: all) of a frame stamped after ``newer_than``."""
-        deadline = time.monotonic() + timeout
+                         timeout: float,
+                         abort: Callable[[], str | None] | None = None) -> dict[int, Any]:
+        """The segmented objects ``ids`` (None: all) of a frame stamped after ``newer_than``;
+        :class:`NoFrameError` once no frame at all came for ``frame_timeout_s``, StackError
+        as soon as ``abort()`` says why waiting is pointless (the scene's simulator restarted:
+        its frames come, without the objects)."""
+        start = time.monotonic()
+        deadline = start + timeout
+        silent = self.settings.frame_timeout_s
 
         def ready() -> dict[int, Any] | None:
             m = self.latest_objects
@@ -340,6 +367,13 @@ class PlannerNode(Node):
                     want = "any object" if ids is None else f"objects {list(ids)}"
                     raise StackError(f"segmentation: {want} not seen within {timeout:.0f} s "
                                      f"(last frame had {seen})")
+                if abort is not None and (why := abort()):
+                    raise StackError(why)
+                last = max(start, self.objects_at or start)
+                if time.monotonic() - last > silent:
+                    raise NoFrameError(f"segmentation: no frame on 'objects' for {silent:.0f} s "
+                                       "(is camera/points publishing, the segmentation node "
+                                       "running?)")
                 self.objects_cv.wait(min(left, 0.5))
         return got
 

@@ -12,6 +12,7 @@ import numpy as np
 from geometry_msgs.msg import Point, Pose, Quaternion, Vector3
 from w2e_msgs.msg import Interaction, InteractionOutcome
 
+from w2e_ros.core.robot.actions import gripper_frame
 from w2e_ros.core.robot.primitives import PRIMITIVES, Action, TrialResult
 
 # --- geometry_msgs <-> numpy -----------------------------------------------------------------
@@ -111,15 +112,8 @@ def interaction_to_action(msg: Interaction) -> Action:
     point, up, forward = from_xyz(msg.point), from_xyz(msg.up), from_xyz(msg.forward)
     if not (np.isfinite(point).all() and np.isfinite(up).all() and np.isfinite(forward).all()):
         raise ValueError("interaction has NaN or infinite values")
-    n_up = np.linalg.norm(up)
-    if n_up < 1e-6:
-        raise ValueError("interaction 'up' (approach direction) is zero")
-    up = up / n_up
-    forward = forward - np.dot(forward, up) * up
-    n_fw = np.linalg.norm(forward)
-    if n_fw < 1e-6:
-        raise ValueError("interaction 'forward' is zero or parallel to 'up'")
-    return Action(point=point, up=up, forward=forward / n_fw, primitive=msg.primitive)
+    up, forward = gripper_frame(up, forward)
+    return Action(point=point, up=up, forward=forward, primitive=msg.primitive)
 
 
 # --- TrialResult <-> InteractionOutcome ------------------------------------------------------

@@ -38,7 +38,7 @@ from w2e_ros.core.exploration.explore import (
     StepRecord,
     explore,
 )
-from w2e_ros.core.exploration.session_log import SessionRun, open_session
+from w2e_ros.core.exploration.session_log import LogWriteError, SessionRun, open_session
 from w2e_ros.core.exploration.strategies import Scored, get_strategy
 from w2e_ros.core.robot.feasibility import Arm
 from w2e_ros.core.robot.primitives import PRIMITIVES, Action, TrialResult
@@ -51,6 +51,11 @@ from w2e_ros.ros.futures import StackError
 from w2e_ros.ros.pointcloud import arrays_to_cloud, cloud_to_arrays, movable_mask
 
 BUSY = "busy: another explore/manipulate is running"
+
+
+class NoFrameError(StackError):
+    """No segmented frame came at all for a while: the camera or the segmentation stopped (not
+    one object lost in frames that come)."""
 
 
 class Stack(Protocol):
@@ -70,7 +75,9 @@ class Stack(Protocol):
     def call(self, client: Any, request: Any, what: str, timeout: float | None = None) -> Any: ...
     def execute(self, interaction: Interaction) -> InteractionOutcome: ...
     def wait_for_objects(self, ids: Sequence[int] | None, newer_than: Time | None,
-                         timeout: float) -> dict[int, Any]: ...
+                         timeout: float,
+                         abort: Callable[[], str | None] | None = None) -> dict[int, Any]: ...
+    def peer_check(self, name: str) -> Callable[[], str | None]: ...
     def targets(self, category: str, object_ids: Sequence[int],
                 instances: Sequence[int]) -> tuple[list[int], Time | None]: ...
     def visible(self, ids: Sequence[int],
@@ -143,13 +150,14 @@ class RosWorld:
         segmentation loses after we touched it (moved out of view, occluded) keeps its last
         cloud rather than ending the exploration of every other object."""
         self._require_scene()
-        try:
+        try:  # a simulator restarted while waiting ends the wait (it waited 40 s an object)
             msg = self.node.wait_for_objects([target], self._newer_than(target),
-                                             self.s.observe_timeout_s)[target]
+                                             self.s.observe_timeout_s,
+                                             abort=self.node.peer_check("load_scene"))[target]
         except StackError as exc:
             self._require_scene()
-            if int(target) not in self.last_cloud:
-                raise
+            if int(target) not in self.last_cloud or isinstance(exc, NoFrameError):
+                raise  # no camera: acting on the last clouds would act blind
             self.node.get_logger().warning(f"{exc}; keeping object {target}'s last cloud")
             return self.last_cloud[int(target)]
         arr = cloud_to_arrays(msg.cloud, require_normals=True)
@@ -185,6 +193,7 @@ class RosModel:
         self.node, self.primitive, self.category = node, primitive, category
         self.run = run  # the session run: its checkpoint name, its updates recorded
         self.checkpoint_path = run.checkpoint if run is not None else ""
+        self.restored = False  # the run is restored in the inference node (first request)
         self.last_mean: float | None = None
         self.on_scored: list = []  # callbacks(mean similarity), after every score
 
@@ -237,26 +246,33 @@ class RosModel:
                 cloud=arrays_to_cloud(points, normals, frame_id=rec.frame_id),
                 interactions=[action_to_interaction(rec.action, rec.object_id)],
                 outcomes=[trial_result_to_outcome(rec.result)], update_affordance=True))
-        if requests:
-            requests[0].restore = True
+        if requests:  # the first one restores (_send)
             self._send(requests, fit=run.fitted < run.count)
 
     def _send(self, requests: list[UpdateModel.Request], fit: bool) -> dict[str, float]:
         """update_model for each request: all but the last only record; the last fits on
-        everything explored (``fit``) and saves the checkpoint, recorded in the session log."""
+        everything explored (``fit``) and saves the checkpoint, recorded in the session log.
+        The call's first request restores the run (``restore``: a new run too), so the
+        model is the run's log replayed (``session_replay``), whatever the inference node
+        held before: another session, an update the log never got."""
         stats: dict[str, float] = {}
+        run = self.run
         for k, req in enumerate(requests):
             last = k == len(requests) - 1
             req.category, req.steps = self.category, self.node.settings.update_steps
             req.record_only = not (last and fit)
             req.save_checkpoint = last and fit
-            req.checkpoint_name = self.run.checkpoint_name if self.run is not None else ""
+            req.restore = run is not None and k == 0 and not self.restored
+            if run is not None:  # a restore that also saves has nothing recorded to load
+                req.checkpoint_name = (run.restore_name if req.restore and not req.save_checkpoint
+                                       else run.checkpoint_name)
             res = self.node.call(self.node.update_cli, req, "update_model")
+            self.restored = self.restored or req.restore
             self.checkpoint_path = res.checkpoint_path or self.checkpoint_path
             stats = {"loss": res.loss, "loss_aff": res.affordance_loss,
                      "loss_sim": res.similarity_loss}
-        if fit and self.run is not None:
-            self.run.record_update(self.checkpoint_path, stats)
+        if fit and run is not None:
+            run.record_update(self.checkpoint_path, stats)
         return stats
 
     def snapshot(self) -> str:
@@ -311,6 +327,12 @@ class ExploreService:
         node.pin_peers()
         try:
             self._explore(req, res, call, should_stop)
+        except LogWriteError as exc:  # a full disk: nothing is learned that is not on disk
+            res.success = False
+            done = call.run.count if call.run is not None else 0
+            res.message = (f"{exc}: the call stops here (an interaction is used only once it "
+                           f"is on disk); the {done} interaction(s) recorded are kept, the next "
+                           "explore of this session continues once the log can be written")
         except (ValueError, StackError) as exc:
             res.success = False
             res.message = str(exc)
@@ -325,8 +347,9 @@ class ExploreService:
             if call.run is not None:
                 try:
                     call.run.end(call.stopped, complete=res.success, message=res.message)
-                except OSError as exc:
-                    node.get_logger().error(f"explore: cannot write {call.run.path}: {exc}")
+                except OSError as exc:  # the next call of the session resumes the run
+                    node.get_logger().error(f"explore: {exc}")
+                    res.message += f"; the run's end is not recorded ({exc})"
             node.busy.release()
         res.interactions_used = call.run.count if call.run is not None else 0
         res.successes = call.run.successes if call.run is not None else 0

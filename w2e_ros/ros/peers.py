@@ -60,9 +60,14 @@ def alive_topic(node: Node, name: str) -> str:
     return node.resolve_topic_name(name).rstrip("/") + "/_alive"
 
 
+_STARTED_NS = time.time_ns()  # this module's import: before any node of the process serves
+
+
 def instance_id() -> str:
-    """This process: host, pid and start time (a restarted node gets a new one)."""
-    return f"{socket.gethostname()}:{os.getpid()}:{time.time_ns()}"
+    """This process: host, pid and start time (a restarted node gets a new one). The start
+    time is taken before the process serves anything, so a server whose services a call saw
+    started before the call, however late its announcement comes."""
+    return f"{socket.gethostname()}:{os.getpid()}:{_STARTED_NS}"
 
 
 def announce(node: Node, names: Sequence[str]) -> list[Publisher]:
@@ -185,9 +190,12 @@ class PeerWatch:
         answer any more, or None: a process started after ``since_ns`` replaced it (restarted),
         or it lost its liveliness (died). A replacement that started before the pin is not a
         restart of this call: its announcement came late (a loaded machine's discovery), and
-        it has answered every request of the call."""
+        it has answered every request of the call. With nothing pinned (no announcement
+        seen yet when the call started: a client just started) the same holds: a process that
+        started after ``since_ns`` is a restart of this call (the one the call reached is
+        gone: a bridge restarted right after the planner waited 40 s for its lost scene)."""
         with self._lock:
-            if pinned is None or self._instance is None:
+            if self._instance is None:
                 return None
             if self._instance != pinned and started_ns(self._instance) > since_ns:
                 return (f"{self.server} restarted (a new process serves {self.name}; what "

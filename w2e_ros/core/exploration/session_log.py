@@ -14,8 +14,10 @@ A session is (session name, category, primitive). Its latest run is resumed unti
 complete (budget spent, bar reached); the call after a complete run starts ``run-0002``. A cloud
 file is complete (temporary name, fsync, rename) before the line that names it, and every line
 is flushed and fsynced before the interaction is used. A line torn by a crash mid-write is cut
-off when the run is opened again. One explore runs at a time per planner, so the files are not
-locked: give two planners two directories.
+off when the run is opened again; a write that fails (a full disk) is undone at once (the file
+cut back to where it was, the temporary cloud removed) and raises :class:`LogWriteError`, so the
+log goes on cleanly once it can be written again. One explore runs at a time per planner, so the
+files are not locked: give two planners two directories.
 """
 
 from __future__ import annotations
@@ -35,6 +37,38 @@ from w2e_ros.core.robot.primitives import Action, TrialResult
 EVENTS = "events.jsonl"
 _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
 DEFAULT_SESSION = "default"
+
+
+class LogWriteError(OSError):
+    """The session's log could not be written (a full disk, a read-only or vanished
+    directory); nothing half-written was left, what was logged before is unchanged."""
+
+    def __str__(self) -> str:
+        return str(self.strerror)
+
+
+def _cannot_write(run_dir: Path, exc: OSError) -> LogWriteError:
+    return LogWriteError(exc.errno, f"exploration log {run_dir}: cannot write "
+                         f"({exc.strerror or exc})")
+
+
+def _write_whole(path: Path, data: bytes) -> None:
+    """Append ``data`` to ``path`` and fsync, or leave the file as it was and raise: a disk
+    that fills mid-write takes part of a line (a short write, then ENOSPC), and a later
+    line appended after the torn one would make one undecodable line of the two."""
+    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+    try:
+        size = os.fstat(fd).st_size
+        try:
+            view = memoryview(data)
+            while view:
+                view = view[os.write(fd, view):]
+            os.fsync(fd)
+        except OSError:
+            os.ftruncate(fd, size)  # giving space back needs none
+            raise
+    finally:
+        os.close(fd)
 
 
 def check_name(name: str, what: str) -> str:
@@ -161,8 +195,20 @@ class SessionRun:
 
     @property
     def checkpoint_name(self) -> str:
-        """File name of this run's adapted checkpoint (in the inference node's adapted_dir)."""
-        return f"w2e_session_{self.session}_{self.category}_{self.primitive}_{self.name}.pt"
+        """File name of the checkpoint a model update of this call saves, learning from the
+        interactions recorded now (in the inference node's adapted_dir): one name per call
+        and count, so a save whose update never got into the log (the planner died before
+        recording it, the disk was full) overwrites no checkpoint the log names, and a
+        resume starts from exactly the weights the log stands for."""
+        calls = sum(e["event"] == "run" for e in self.events)
+        return (f"w2e_session_{self.session}_{self.category}_{self.primitive}_{self.name}"
+                f"_c{calls:03d}_n{self.count:04d}.pt")
+
+    @property
+    def restore_name(self) -> str:
+        """File name of the checkpoint a resume of this run loads: the last recorded update's,
+        else one no update saved (the configured checkpoint is loaded)."""
+        return Path(self.checkpoint).name if self.checkpoint else self.checkpoint_name
 
     # --- writing ----------------------------------------------------------------------------
     def _make_dirs(self) -> None:
@@ -171,11 +217,11 @@ class SessionRun:
     def _append(self, event: dict[str, Any]) -> None:
         event = {"event": event.pop("event"), "time": round(time.time(), 3), **event}
         line = json.dumps(event, separators=(",", ":")) + "\n"
-        self._make_dirs()
-        with open(self.path / EVENTS, "a") as f:
-            f.write(line)
-            f.flush()
-            os.fsync(f.fileno())
+        try:
+            self._make_dirs()
+            _write_whole(self.path / EVENTS, line.encode())
+        except OSError as exc:
+            raise _cannot_write(self.path, exc) from exc
         self.events.append(event)
 
     def start(self, request: dict[str, Any]) -> int:
@@ -187,18 +233,23 @@ class SessionRun:
     def append(self, object_id: int, instance: int | None, action: Action, result: TrialResult,
                points: np.ndarray, normals: np.ndarray,
                frame_id: str = "world") -> LoggedInteraction:
-        """Record one executed interaction (its cloud first); durable when this returns."""
+        """Record one executed interaction (its cloud first); durable when this returns, else
+        :class:`LogWriteError` and nothing of it recorded."""
         index = self.count + 1
         rel = f"clouds/{index:06d}.npz"
         tmp = self.path / f"{rel}.tmp"
-        self._make_dirs()
-        with open(tmp, "wb") as f:
-            np.savez(f, points=np.asarray(points, np.float32),
-                     normals=np.asarray(normals, np.float32))
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, self.path / rel)
-        _fsync_dir(self.path / "clouds")
+        try:
+            self._make_dirs()
+            with open(tmp, "wb") as f:
+                np.savez(f, points=np.asarray(points, np.float32),
+                         normals=np.asarray(normals, np.float32))
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, self.path / rel)
+            _fsync_dir(self.path / "clouds")
+        except OSError as exc:
+            tmp.unlink(missing_ok=True)
+            raise _cannot_write(self.path, exc) from exc
         self._append({"event": "interaction", "index": index, "object_id": int(object_id),
                       "instance": None if instance is None else int(instance),
                       "action": action_to_dict(action), "result": result_to_dict(result),
@@ -214,6 +265,23 @@ class SessionRun:
         """How the call ended; ``complete`` closes the run (the next call starts a new one)."""
         self._append({"event": "end", "stopped": stopped, "complete": bool(complete),
                       "interactions": self.count, "message": message})
+
+
+_CHECKPOINT = re.compile(r"(?P<run>w2e_session_.+)_c(?P<call>\d+)_n(?P<count>\d+)\.pt")
+
+
+def run_checkpoints(directory: str | os.PathLike, name: str) -> list[Path]:
+    """The checkpoints in ``directory`` of the run whose :attr:`SessionRun.checkpoint_name`
+    is ``name``, oldest first (call, then count); [] when ``name`` is not such a name."""
+    m = _CHECKPOINT.fullmatch(name)
+    if m is None:
+        return []
+    found = []
+    for p in Path(directory).glob(f"{m['run']}_c*_n*.pt"):
+        o = _CHECKPOINT.fullmatch(p.name)
+        if o is not None and o["run"] == m["run"]:
+            found.append((int(o["call"]), int(o["count"]), p))
+    return [p for *_, p in sorted(found)]
 
 
 def session_dir(root: str | os.PathLike, session: str, category: str, primitive: str) -> Path:

@@ -62,6 +62,23 @@ def sample_forward(up: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return _unit(r).astype(np.float32)
 
 
+def gripper_frame(up: np.ndarray, forward: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(up, forward) of one action as a unit, orthogonal frame: ``up`` normalised, ``forward``
+    re-orthogonalised against it (ValueError for a zero ``up`` or a ``forward`` parallel to
+    it). The stack's every action goes through it (the executor, the inference node, the
+    replay of a session log), so all learn from the same numbers."""
+    up, forward = np.asarray(up, np.float64), np.asarray(forward, np.float64)
+    n_up = np.linalg.norm(up)
+    if n_up < 1e-6:
+        raise ValueError("interaction 'up' (approach direction) is zero")
+    up = up / n_up
+    forward = forward - np.dot(forward, up) * up
+    n_fw = np.linalg.norm(forward)
+    if n_fw < 1e-6:
+        raise ValueError("interaction 'forward' is zero or parallel to 'up'")
+    return up, forward / n_fw
+
+
 def encode_rotation(up: np.ndarray, forward: np.ndarray) -> np.ndarray:
     """(M, 3), (M, 3) -> (M, 6): the two columns that define the gripper rotation."""
     return np.concatenate([np.asarray(up), np.asarray(forward)], axis=-1).astype(np.float32)
