@@ -445,28 +445,38 @@ class Stack:
                 if not pending:
                     break
                 if time.monotonic() > deadline:
-                    raise StackError(f"nodes {sorted(pending)} were not up after {timeout:.0f} s")
+                    said = "".join(f"\n{n} (pid {p.popen.pid}), its last output:\n  " +
+                                   "\n  ".join(list(p.tail)[-15:]) for n, p in pending.items())
+                    missing = {n: self._missing(probe, p.spec) for n, p in pending.items()}
+                    raise StackError(f"nodes {sorted(pending)} were not up after {timeout:.0f} s "
+                                     f"(not seen: {missing}){said}")
                 time.sleep(0.2)
         finally:
             probe.destroy_node()
             rclpy.try_shutdown(context=ctx)
 
     def _is_up(self, probe, spec: NodeSpec) -> bool:
+        return not self._missing(probe, spec)
+
+    def _missing(self, probe, spec: NodeSpec) -> list[str]:
+        """What the probe does not see yet of ``spec``'s services, actions and publishers (the
+        node's name where it offers none)."""
         ns = self.namespace
         services = {n for n, _ in probe.get_service_names_and_types()}
         want = [f"{ns}/{s}" for s in spec.services]
         want += [f"{ns}/{a}/_action/send_goal" for a in spec.actions]
-        if any(w not in services for w in want):
-            return False
+        missing = [w for w in want if w not in services]
         if spec.publishers:
             try:
                 topics = {n for n, _ in probe.get_publisher_names_and_types_by_node(
                     spec.node, ns or "/")}
             except Exception:  # node not discovered yet
-                return False
-            if any(f"{ns}/{t}" not in topics for t in spec.publishers):
-                return False
-        return bool(want or spec.publishers) or spec.node in probe.get_node_names()
+                topics = set()
+            missing += [f"{ns}/{t} (publisher)" for t in spec.publishers
+                        if f"{ns}/{t}" not in topics]
+        if not (want or spec.publishers) and spec.node not in probe.get_node_names():
+            missing.append(f"node {spec.node}")
+        return missing
 
     def alive(self) -> dict[str, bool]:
         """Which nodes are still running."""
