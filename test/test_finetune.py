@@ -31,8 +31,9 @@ def replay():
 
 def _explorer(mode: str, replay=None, seed: int = 0, **kw) -> W2EExplorer:
     torch.manual_seed(seed)
+    # the fit itself, what the model serves after it is test_guard's
     cfg = FinetuneConfig(**{"finetune": mode, "finetune_steps": 60, "finetune_min_steps": 60,
-                           "finetune_lr": 3e-3, "anchor": 0.0, **kw})
+                           "finetune_lr": 3e-3, "anchor": 0.0, "guard": "off", **kw})
     return W2EExplorer(W2EModel(SMALL), cfg, replay, ("cabinet",), SIM, seed=seed,
                        features=FeatureCache())
 

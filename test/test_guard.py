@@ -81,7 +81,7 @@ def test_accept_rejects_an_update_that_raises_the_held_out_loss(novel, fitted):
 def test_an_accepted_update_is_exactly_the_unguarded_one(novel):
     """A random-weight prior, a learnable explored set: the update passes the check, and the
     trial fits left no trace (same weights as with the guard off)."""
-    off, on = _explorer(), _explorer(guard="accept")
+    off, on = _explorer(guard="off"), _explorer(guard="accept")
     for ex in (off, on):
         ex.add_data(novel)
     off.fit()
@@ -92,7 +92,7 @@ def test_an_accepted_update_is_exactly_the_unguarded_one(novel):
 
 
 def test_average_serves_the_mix_and_fits_on_from_the_adapted_weights(novel):
-    off, avg = _explorer(), _explorer(guard="average", guard_weight=0.25)
+    off, avg = _explorer(guard="off"), _explorer(guard="average", guard_weight=0.25)
     prior = _state(avg)
     for ex in (off, avg):
         ex.add_data(novel)

@@ -77,13 +77,17 @@ class FinetuneConfig:
     similarity_update: str = setting(
         "finetune", "finetune: each fit also trains the similarity head on what was explored "
         "(the reference); frozen: it stays as calibrated", choices=SIMILARITY_UPDATES)
+    # on (average, 0.75) since 2026-12-07, chosen on validation (bench/RESEARCH.md, "Serving
+    # a mix of the trained and the adapted heads"); results measured before then ran without
+    # it: --guard off reproduces them
     guard: str = setting(
-        "off", "what the model serves after a fit (core.exploration.guard; every fit continues "
+        "average", "what the model serves after a fit (core.exploration.guard; every fit continues "
         "from the adapted weights): off: the adapted weights; average: prior + guard_weight x "
         "(adapted - prior); accept: the adapted ones only if, fitted from the prior on all "
         "but one of guard_folds folds of the explored set, they predict the held-out folds "
         "better than the prior (guard_metric), else the prior", choices=GUARDS)
-    guard_weight: float = setting(0.5, "with guard average: the adapted weights' share",
+    # 0.5 lost 0.8 [0.2, 1.5] AUROC at budget 5 on validation; 0.75 gained
+    guard_weight: float = setting(0.75, "with guard average: the adapted weights' share",
                                   min=0.0, max=1.0)
     guard_folds: int = setting(5, "with guard accept: folds (by cloud) of the explored set",
                                min=2)
