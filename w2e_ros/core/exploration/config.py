@@ -77,11 +77,11 @@ class FinetuneConfig:
     similarity_update: str = setting(
         "finetune", "finetune: each fit also trains the similarity head on what was explored "
         "(the reference); frozen: it stays as calibrated", choices=SIMILARITY_UPDATES)
-    # on (average, 0.75) since 2026-12-07, chosen on validation (bench/RESEARCH.md, "Serving
-    # a mix of the trained and the adapted heads"); results measured before then ran without
-    # it: --guard off reproduces them
+    # average with 0.75 won on validation (bench/RESEARCH.md, "Serving a mix of the trained and
+    # the adapted heads"); off by default until the stack's validation buckets confirm it and a
+    # full CI run has covered it (--guard average, or the inference node's guard parameter)
     guard: str = setting(
-        "average", "what the model serves after a fit (core.exploration.guard; every fit continues "
+        "off", "what the model serves after a fit (core.exploration.guard; every fit continues "
         "from the adapted weights): off: the adapted weights; average: prior + guard_weight x "
         "(adapted - prior); accept: the adapted ones only if, fitted from the prior on all "
         "but one of guard_folds folds of the explored set, they predict the held-out folds "
