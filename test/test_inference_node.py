@@ -483,3 +483,30 @@ def test_services_answer_while_the_replay_is_encoded_and_updates_wait_for_it(
         release.set()
         for g in built:
             g.close()
+
+
+def test_the_feature_cache_is_the_nodes_and_holds_at_most_its_parameter(checkpoints, tmp_path):
+    """The node's memory grows ~1 MiB per explored cloud (its encoder features, kept for the
+    fits): feature_cache_clouds caps it, and a fit over more clouds than the cap still runs."""
+    from w2e_ros.core.model.predict import FEATURES
+
+    shared = len(FEATURES._store)
+    g = _Graph([Parameter("push_checkpoint", value=str(checkpoints["push"])),
+                Parameter("pull_checkpoint", value=str(checkpoints["pull"])),
+                Parameter("adapted_dir", value=str(tmp_path)),
+                Parameter("num_directions", value=4), Parameter("finetune_steps", value=2),
+                Parameter("threads", value=1), Parameter("feature_cache_clouds", value=16)])
+    try:
+        for k in range(20):
+            msg = cloud_msg(seed=100 + k)
+            act = g.call(g.predict, predict_request([msg], num_best=1))
+            res = g.call(g.update, UpdateModel.Request(
+                cloud=msg, interactions=list(act.maps[0].explore_actions[:1]),
+                outcomes=[_outcome(k % 2 == 0)], category="door", update_affordance=True))
+            assert res.success, res.message
+            assert act.success, act.message
+            assert len(g.node.features._store) <= 16
+        assert len(g.node.features._store) == 16  # 20 clouds fitted, the cap kept
+        assert len(FEATURES._store) == shared  # the process-wide cache was not used
+    finally:
+        g.close()

@@ -43,6 +43,7 @@ from w2e_ros.core.exploration.session_replay import executed_on
 from w2e_ros.core.infra.allocator import keep_freed_memory
 from w2e_ros.core.model.network import W2EModel, default_device, load_model, save_model
 from w2e_ros.core.model.policy import best_first, score_map
+from w2e_ros.core.model.predict import FeatureCache
 from w2e_ros.core.robot.pointcloud import check_cloud, fps_indices
 from w2e_ros.core.robot.primitives import BASE_PRIMITIVES, PRIMITIVES, Action
 from w2e_ros.paths import default_checkpoint, default_replay_pack
@@ -107,6 +108,12 @@ class InferenceSettings:
     replay_timeout_s: float = param(
         300.0, "longest wait of update_model for the replay, which is encoded in the "
         "background after start-up (predict_maps answers meanwhile)", min=0.0)
+    feature_cache_clouds: int = param(
+        2048, "clouds whose encoder features the node keeps (1 MiB each at 2,048 points x 128 "
+        "features): its memory grows by that per distinct cloud it fits on (explored, replayed) "
+        "until this many are kept, then the oldest go (a fit over more explored clouds "
+        "re-encodes them)",
+        min=16, max=1_000_000)
     threads: int = param(2, "torch CPU threads", min=1, max=256)
     publish_maps: bool = param(True, "publish affordance_map / similarity_map clouds")
     seed: int = param(0, "seed of the node's direction sampling and replay")
@@ -178,6 +185,8 @@ class InferenceNode(Node):
         self.device = default_device()
         self.rng = np.random.default_rng(s.seed)
         self.lock = threading.Lock()  # model state: one request at a time
+        # per node, not the process-wide cache: its size is this node's parameter
+        self.features = FeatureCache(max_clouds=s.feature_cache_clouds)
         self.served: dict[str, _Served] = {}
         self.load_errors: dict[str, str] = {}
         self._load_all()
@@ -235,7 +244,8 @@ class InferenceNode(Node):
         if source is not None:  # a replay pack is replayed whole (W2EExplorer.attach_replay)
             data = InteractionData.load(source)
             replay = load_training_data_from(data, method, combo, primitive, source=str(source))
-        explorer = explorer_for(model, meta, finetune_config(s), s.seed, s.combo)
+        explorer = explorer_for(model, meta, finetune_config(s), s.seed, s.combo,
+                                features=self.features)
         served = _Served(primitive, path, model, meta, explorer)
         self.load_errors.pop(primitive, None)
         self.get_logger().info(f"{primitive}: {path} ({method}/{combo})")

@@ -92,16 +92,17 @@ def similarity_is_balanced(meta: dict) -> bool:
 
 
 def explorer_for(model: W2EModel, meta: dict, cfg: FinetuneConfig, seed: int = 0,
-                 combo: str = "cfw") -> W2EExplorer:
+                 combo: str = "cfw", features: FeatureCache | None = None) -> W2EExplorer:
     """The explorer the inference node fine-tunes ``model`` (a checkpoint's, with its ``meta``)
     with: the training roles of its method and combination (``combo`` when the checkpoint
-    does not say), the similarity trained as it was calibrated. No replay attached."""
+    does not say), the similarity trained as it was calibrated, its clouds' features kept in
+    ``features`` (default: the process-wide cache). No replay attached."""
     from w2e_ros.core.model.training import method_categories
 
     aff_cats, sim_cats = method_categories(str(meta.get("method", "w2e")),
                                            str(meta.get("combo", combo)))
     return W2EExplorer(model, cfg, aff_categories=aff_cats, sim_categories=sim_cats,
-                       train_similarity=True, seed=seed,
+                       train_similarity=True, seed=seed, features=features,
                        balanced_similarity=similarity_is_balanced(meta))
 
 
