@@ -16,6 +16,9 @@ per seed and rule through ``bench/demo_seeds.py``'s runner, cached by ``summary.
    evidence to revert). Otherwise halve the changes: revert the first half; the half whose
    reversal carries more than half of the shift holds the change; repeat until one is left.
 
+A single ``--change`` makes it a paired A/B test of one setting on the same runs (seeds, scenes,
+judged instances): the table says what the setting does to each rule.
+
     .venv/bin/python bench/bisect_stack.py --seeds 0 1 2 3 4 5 6 7 8 9 \
         --strategies similarity random --runs /tmp/bisect --out bench/results/bisect_stack \
         --change inference_node.finetune_steps=500 inference_node.fit_target=0.0 \
@@ -67,7 +70,7 @@ def params_file(changes: list[tuple[str, str, object]], folder: Path, tag: str) 
 
 
 def tag_of(changes: list[tuple[str, str, object]]) -> str:
-    return "new" if not changes else "revert-" + "+".join(n for _, n, _ in changes)
+    return "new" if not changes else "set-" + "+".join(n for _, n, _ in changes)
 
 
 class Probe:
@@ -145,7 +148,9 @@ def bisect(a: argparse.Namespace) -> dict:
                                       "trials": int(np.size(r["after"])),
                                       "interactions": r["interactions"],
                                       "below_start": int(np.sum(
-                                          np.sum(r["after"], 1) < np.sum(r["before"], 1)))}
+                                          np.sum(r["after"], 1) < np.sum(r["before"], 1))),
+                                  "above_start": int(np.sum(
+                                          np.sum(r["after"], 1) > np.sum(r["before"], 1)))}
                                  for st, r in arm["rules"].items()},
                        "minus_new": {st: shift(arm, new, st, a.seeds) for st in a.strategies}}
                    for t, arm in probe.arms.items()}
@@ -156,15 +161,16 @@ def write_table(res: dict, out: Path) -> None:
     lines = [f"# Bisection over settings: {res['rule']}, {len(res['seeds'])} seeds, "
              f"w2e demo {' '.join(res['demo_flags'])}", "",
              f"**{res['verdict']}.**", "",
-             "| arm | rule | before -> after (of trials) | interactions | seeds below start "
-             "| after − new [95 % CI, seeds resampled] |", "|---|---|---|---|---|---|"]
+             "| arm | rule | before -> after (of trials) | interactions | seeds below / above "
+             "start | after − new [95 % CI, seeds resampled] |", "|---|---|---|---|---|---|"]
     for tag, arm in res["arms"].items():
         for st, r in arm["rules"].items():
             m = arm["minus_new"][st]
             diff = ("" if tag == "new" else f"{100 * m['mean']:+.0f} % "
                     f"[{100 * m['ci'][0]:+.0f}, {100 * m['ci'][1]:+.0f}]")
             lines.append(f"| {tag} | {st} | {r['before']} -> {r['after']} ({r['trials']}) | "
-                         f"{r['interactions']} | {r['below_start']}/{len(res['seeds'])} | "
+                         f"{r['interactions']} | {r['below_start']} / {r['above_start']} of "
+                         f"{len(res['seeds'])} | "
                          f"{diff} |")
     lines += ["", "Arms: " + "; ".join(f"{t} = {', '.join(a['changes']) or 'HEAD config'}"
                                        for t, a in res["arms"].items())]

@@ -74,4 +74,4 @@ def test_no_shift_on_validation_means_nothing_to_bisect(tmp_path, monkeypatch):
     _fake_runs(monkeypatch, {})
     res = bisect_stack.bisect(_args(tmp_path))
     assert "culprit" not in res and res["verdict"].startswith("no shift on validation")
-    assert set(res["arms"]) == {"new", "revert-finetune_steps+fit_target+anchor"}
+    assert set(res["arms"]) == {"new", "set-finetune_steps+fit_target+anchor"}
