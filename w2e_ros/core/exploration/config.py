@@ -77,9 +77,10 @@ class FinetuneConfig:
     similarity_update: str = setting(
         "finetune", "finetune: each fit also trains the similarity head on what was explored "
         "(the reference); frozen: it stays as calibrated", choices=SIMILARITY_UPDATES)
-    # average with 0.75 won on validation (bench/RESEARCH.md, "Serving a mix of the trained and
-    # the adapted heads"); off by default until the stack's validation buckets confirm it and a
-    # full CI run has covered it (--guard average, or the inference node's guard parameter)
+    # average with 0.75 won offline with random picks (bench/RESEARCH.md, "Serving a mix of the
+    # trained and the adapted heads"), but in the stack it stopped the similarity rule learning
+    # (7 -> 7 of 50 validation buckets) and did nothing for random ("In the stack the guard
+    # stops the similarity rule learning"): off by default
     guard: str = setting(
         "off", "what the model serves after a fit (core.exploration.guard; every fit continues "
         "from the adapted weights): off: the adapted weights; average: prior + guard_weight x "
