@@ -464,3 +464,37 @@ def test_cli_round_flags_reach_the_loop():
                                        "--per-object-per-round", "5"])
     cfg = cli._explore_config(a)
     assert (cfg.round_size, cfg.per_object_per_round) == (275, 5)
+
+
+def test_posterior_draws_scatter_around_the_affordance_and_leave_the_fit_alone(novel, replay):
+    """MC dropout at rate 0 reproduces the scored affordance; at 0.5 the draws differ and
+    their mean stays near it. Drawing them does not move the fit: from the same interaction
+    an explorer that drew and one that did not end on the same weights."""
+    cloud = Cloud(novel.points[0], novel.normals[0], novel.movable[0])
+    cands = sample_candidates(cloud, 16, 2, np.random.default_rng(1), mask=cloud.movable)
+    done = Executed(cloud, cands, 0, TrialResult(True, True, np.array([0.05]), 0, "door"))
+    weights = []
+    for draw in (True, False):
+        exp, _ = _explorer(replay)
+        scored = exp.score([cloud], [cands])
+        if draw:
+            exp.draw_affordance(scored, [cands], 4, 0.0)
+            np.testing.assert_allclose(scored[0].draws,
+                                       np.repeat(scored[0].affordance[None], 4, 0), atol=1e-5)
+            exp.draw_affordance(scored, [cands], 64, 0.5)
+            d = scored[0].draws
+            assert d.shape == (64, len(cands)) and d.std(0).mean() > 0.01
+            assert np.abs(d.mean(0) - scored[0].affordance).mean() < 0.1
+        exp.update([done])
+        weights.append(exp.snapshot())
+    for k, v in weights[0].items():
+        assert torch.equal(v, weights[1][k]), k
+
+
+def test_the_thompson_rule_explores_and_learns_through_the_loop(novel, replay):
+    exp, cfg = _explorer(replay, budget=2, round_size=2)
+    world = RuleWorld(novel)
+    res = explore(exp, world, list(range(4)), get_strategy("thompson", experimental=True),
+                  cfg, "push")
+    assert len(res.steps) == 8 and res.stopped == "budget" and exp.num_explored == 8
+    assert len(world.executed) == 8 and {t for t, _ in world.executed} <= set(range(4))

@@ -219,7 +219,8 @@ def test_every_old_rule_gives_the_picks_it_gave_before_the_set_interface():
 # --- the set rules ---------------------------------------------------------------------------
 
 SET_RULES = ["coverage_success", "coverage_success_sharp", "typiclust", "probcover",
-             "similarity_coverage", "balanced"]
+             "similarity_coverage", "balanced", "thompson", "thompson_flat"]
+DRAWS = 8
 N_CLUSTERS, PER_CLUSTER, FEAT_DIM = 8, 60, 16
 
 
@@ -234,7 +235,15 @@ def _clustered(seed: int = 0, n_objects: int = 24) -> tuple[list[Scored], np.nda
     scored = [Scored(affordance=rng.random(int((obj == o).sum())),
                      similarity=rng.random(int((obj == o).sum())),
                      features=feats[obj == o]) for o in range(n_objects)]
+    _posterior_around(scored, 0.2, rng)
     return scored, np.concatenate([blob[obj == o] for o in range(n_objects)])
+
+
+def _posterior_around(scored: list[Scored], spread: float, rng: np.random.Generator) -> None:
+    """Posterior draws scattered ``spread`` around each candidate's affordance."""
+    for s in scored:
+        noise = rng.normal(0, spread, (DRAWS, len(s.affordance)))
+        s.draws = np.clip(s.affordance[None] + noise, 0, 1)
 
 
 def _flat(scored: list[Scored], picks: list[tuple[int, int]]) -> list[int]:
@@ -274,7 +283,7 @@ def test_set_rules_are_deterministic_per_seed(name):
 
 
 @pytest.mark.parametrize("name", ["coverage_success", "coverage_success_sharp", "typiclust",
-                                  "probcover"])
+                                  "probcover", "thompson"])
 def test_coverage_rules_spread_a_round_over_the_feature_clusters(name):
     """k = clusters: one pick in every blob (random hits all 8 blobs with 8 picks in only
     8!/8^8 = 0.24 % of rounds)."""
@@ -307,7 +316,8 @@ def test_typiclust_takes_a_dense_point_not_an_outlier():
 
 
 @pytest.mark.parametrize("name", ["coverage_success", "coverage_success_sharp",
-                                  "similarity_coverage", "balanced"])
+                                  "similarity_coverage", "balanced", "thompson",
+                                  "thompson_flat"])
 def test_success_seeking_rules_pick_more_likely_successes_than_random(name):
     """Affordance skewed low (most candidates look like failures, as on pulls): over rounds
     the rule's picks are predicted successes (> 0.5) far more often than random's."""
@@ -315,6 +325,7 @@ def test_success_seeking_rules_pick_more_likely_successes_than_random(name):
     scored, _ = _clustered()
     for s in scored:
         s.affordance = rng.beta(0.5, 4.0, len(s.affordance))
+    _posterior_around(scored, 0.2, rng)
     rule, rand = entry(name), entry("random")
 
     def high(r) -> float:
@@ -368,6 +379,39 @@ def test_feature_rules_say_they_need_features_and_are_offline_only():
     assert not entry("similarity").offline_only and entry("oracle").offline_only
     with pytest.raises(ValueError, match="sets"):
         entry("typiclust").keys(scored[0], np.random.default_rng(0))
+
+
+def test_thompson_takes_the_mean_where_the_posterior_is_sure_and_varies_where_it_is_not():
+    """Draws all equal to the affordance: the flat rule is the per-object argmax, the same
+    for every seed; draws wide apart: the picks change with the seed, and a candidate whose
+    draws are all high beats one that is high only on average."""
+    scored, _ = _clustered()
+    rule = entry("thompson_flat")
+    for s in scored:
+        s.draws = np.repeat(s.affordance[None], DRAWS, axis=0)
+    sure = [rule.select(scored, 6, 1, np.random.default_rng(seed)) for seed in range(4)]
+    best = sorted(((-float(s.affordance.max()), o, int(s.affordance.argmax()))
+                   for o, s in enumerate(scored)))[:6]
+    assert all(picks == sure[0] for picks in sure)
+    assert sorted(sure[0]) == sorted((o, c) for _, o, c in best)
+    _posterior_around(scored, 2.0, np.random.default_rng(1))
+    unsure = {tuple(rule.select(scored, 6, 1, np.random.default_rng(seed)))
+              for seed in range(4)}
+    assert len(unsure) > 1
+    one = [Scored(np.array([0.5, 0.5]), np.array([0.5, 0.5]), features=np.eye(2, dtype=np.float32),
+                  draws=np.array([[0.6, 1.0], [0.6, 0.0], [0.6, 0.0], [0.6, 0.0]]))]
+    got = [rule.select(one, 1, 1, np.random.default_rng(seed))[0][1] for seed in range(40)]
+    assert 0.6 < np.mean(np.array(got) == 0) < 0.9  # the sure one wins 3 draws in 4
+
+
+def test_thompson_rules_need_posterior_draws_and_are_offline_only():
+    scored = [Scored(np.array([0.2, 0.7]), np.array([0.5, 0.5]),
+                     features=np.eye(2, dtype=np.float32))]
+    for name in ["thompson", "thompson_light", "thompson_flat"]:
+        rule = entry(name)
+        assert rule.draws > 0 and 0 < rule.dropout < 1 and rule.offline_only
+        with pytest.raises(ValueError, match="sampled success"):
+            rule.select(scored, 1, 1, np.random.default_rng(0))
 
 
 def test_the_sharp_draw_reaches_its_target_where_the_plain_one_stays_flat():

@@ -218,6 +218,9 @@ def explore(model: ExplorationModel, world: ExplorationWorld, targets: Sequence[
 
     Each round: propose and score candidates, narrow the objects still explored, let the
     strategy pick, execute, learn, snapshot, re-observe what moved (:class:`_Run`)."""
+    if strategy.draws and not hasattr(model, "draw_affordance"):
+        raise ValueError(f"strategy {strategy.name!r} samples the model's posterior: the "
+                         "model must have draw_affordance (W2EExplorer)")
     if strategy.needs_familiarity and familiarity is None:
         raise ValueError(f"strategy {strategy.name!r} ranks by geometric familiarity: give "
                          "the training contacts' bank (GeometryFamiliarity)")
@@ -229,6 +232,9 @@ def explore(model: ExplorationModel, world: ExplorationWorld, targets: Sequence[
         t0 = time.perf_counter()
         cands = run.candidates()
         scored = model.score(run.clouds, cands)
+        if strategy.draws:
+            model.draw_affordance(scored, cands, strategy.draws,  # type: ignore[attr-defined]
+                                  strategy.dropout)
         if familiarity is not None:
             for sc, cloud, cand in zip(scored, run.clouds, cands, strict=True):
                 sc.familiarity = familiarity.closeness(cloud.points, cloud.normals,

@@ -143,6 +143,9 @@ class W2EExplorer:
         self.device = model.device
         make_deterministic(seed)
         self.rng = np.random.default_rng(seed)
+        # MC-dropout masks (Thompson-style rules) come from their own stream: drawing them
+        # leaves the fit's randomness, and so every other rule's results, unchanged
+        self._dropout_masks = torch.Generator().manual_seed(seed)
         self.mode = cfg.finetune
         self.heads_only = cfg.finetune == "heads"
         heads = [p for n, p in model.named_parameters() if not n.startswith("encoder.")]
@@ -339,6 +342,23 @@ class W2EExplorer:
             out.append(Scored(torch.sigmoid(aff).cpu().numpy(), sim.cpu().numpy(),
                               features=f.float().cpu().numpy()))  # (C, F): coverage rules
         return out
+
+    @torch.no_grad()
+    def draw_affordance(self, scored: Sequence[Scored], candidates: Sequence[Any],
+                        draws: int, dropout: float) -> None:
+        """Fill each ``Scored.draws`` with ``draws`` samples of the candidates' success
+        probability, the affordance head's last hidden layer dropped at rate ``dropout``
+        (MC dropout: the posterior a Thompson-style rule samples from). Needs the features
+        ``score`` returned."""
+        self.model.eval()
+        for sc, cand in zip(scored, candidates, strict=True):
+            if sc.features is None:
+                raise ValueError("posterior draws need the candidates' features from score()")
+            f = torch.from_numpy(np.asarray(sc.features, np.float32)).to(self.device)
+            a = torch.from_numpy(encode_rotation(cand.up, cand.forward)).to(self.device)
+            logits = self.model.aff_head.dropout_logits(f, a, draws, dropout,
+                                                        self._dropout_masks)
+            sc.draws = torch.sigmoid(logits).float().cpu().numpy()
 
     # --- fitting ----------------------------------------------------------------------------
     def _sample(self, rows: Rows, n: int) -> Rows:

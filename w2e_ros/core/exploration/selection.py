@@ -60,6 +60,7 @@ class Pool:
     familiarity: np.ndarray | None = None  # (C,) geometric closeness to training contacts
     labels: np.ndarray | None = None  # (C,) hindsight outcomes (oracle only)
     explored: np.ndarray | None = None  # (E, F) features of the interactions already taken
+    draws: np.ndarray | None = None  # (S, C) sampled success probabilities (a posterior)
 
     def __len__(self) -> int:
         return len(self.obj)
@@ -75,7 +76,8 @@ class Pool:
         return replace(self, obj=self.obj[idx], local=self.local[idx],
                        affordance=self.affordance[idx], similarity=self.similarity[idx],
                        features=sub(self.features), familiarity=sub(self.familiarity),
-                       labels=sub(self.labels))
+                       labels=sub(self.labels),
+                       draws=None if self.draws is None else self.draws[:, idx])
 
     def segments(self) -> list[np.ndarray]:
         """Per object o, the pool indices of its candidates (empty for an object with none)."""
@@ -303,6 +305,42 @@ def coverage_success(pool: Pool, k: int, rng: np.random.Generator,
     _draw_per_cluster(quota, _largest_first(label, int(label.max()) + 1), w, rng)
     if len(quota.picks) < k:  # clusters whose objects are full: success-weighted draws
         quota.fill(_weighted_order(w, rng), k)
+    return quota.result()[:k]
+
+
+def _posterior(pool: Pool) -> np.ndarray:
+    if pool.draws is None or not pool.draws.shape[0]:
+        raise ValueError("a Thompson-style rule needs sampled success probabilities of the "
+                         "candidates (Scored.draws)")
+    return pool.draws
+
+
+def _thompson_pick(quota: _Quota, idx: np.ndarray, draws: np.ndarray,
+                   rng: np.random.Generator) -> None:
+    """Thompson sampling among ``idx``: one posterior sample, its likeliest success."""
+    ok = quota.eligible(idx)
+    if len(ok):
+        sample = draws[rng.integers(draws.shape[0]), ok]
+        quota.add(int(ok[np.argmax(sample)]))
+
+
+def thompson(pool: Pool, k: int, rng: np.random.Generator, cover: bool = True) -> np.ndarray:
+    """Coverage + Thompson-style success seeking (issue 40, 3a): k-means of the encoder
+    features into ``k`` clusters and, per cluster (largest first), the likeliest success
+    under a fresh sample of the posterior; ``cover`` False draws every pick over the whole
+    pool (the per-object limits still spread it). A sample, not the mean, so where the
+    model is unsure the picks vary instead of repeating its confident mistakes."""
+    if not len(pool) or k <= 0:
+        return np.zeros(0, np.int64)
+    draws = _posterior(pool)
+    quota = _Quota(pool)
+    if cover:
+        _, label = kmeans(_normalised_features(pool), k, rng)
+        for idx in _largest_first(label, int(label.max()) + 1):
+            _thompson_pick(quota, idx, draws, rng)
+    everything = np.arange(len(pool))
+    while len(quota.picks) < k and len(quota.eligible(everything)):
+        _thompson_pick(quota, everything, draws, rng)
     return quota.result()[:k]
 
 

@@ -43,8 +43,10 @@ Set rules on the encoder features (issue 40, the low-budget anchors): ``coverage
 ``coverage_success_sharp`` sharpens the draw towards the likeliest successes), ``typiclust`` and
 ``probcover``, ``similarity_coverage`` (the similarity allocates the round over objects,
 coverage picks inside one) and ``balanced`` (half predicted successes, half near the
-boundary; needs no features). The stack's inference node returns no features yet, so the
-feature rules are offline only for now.
+boundary; needs no features), ``thompson`` (k-means clusters, in each the likeliest success
+under a fresh MC-dropout sample of the affordance head: Thompson sampling with coverage;
+``thompson_light`` at a lower dropout rate, ``thompson_flat`` without the clusters). The
+stack's inference node returns no features or draws yet, so these rules are offline only.
 """
 
 from __future__ import annotations
@@ -67,6 +69,7 @@ class Scored:
     similarity: np.ndarray  # (C,) predicted similarity to the known geometry, in [0, 1]
     familiarity: np.ndarray | None = None  # (C,) geometric closeness to the training contacts
     features: np.ndarray | None = None  # (C, F) float32 encoder features at the contact point
+    draws: np.ndarray | None = None  # (S, C) sampled success probabilities (MC dropout)
 
 
 # --- the per-candidate keys (lower = explore first); each sees one object's candidates ------
@@ -154,6 +157,8 @@ class Strategy:
     ``needs_labels``: the loop must give hindsight outcomes of the candidates (oracle).
     ``needs_familiarity``: the loop must fill ``Scored.familiarity`` (a training bank).
     ``needs_features``: the model must fill ``Scored.features`` (the encoder's).
+    ``draws`` / ``dropout``: the model must fill ``Scored.draws`` with that many MC-dropout
+    samples of the success probability (Thompson-style rules).
     ``summary``: what the rule does, in a few words without a semicolon (the user-facing
     rules' help texts)."""
 
@@ -164,12 +169,15 @@ class Strategy:
     needs_labels: bool = False
     needs_familiarity: bool = False
     needs_features: bool = False
+    draws: int = 0  # > 0: the model must fill ``Scored.draws`` with this many samples
+    dropout: float = 0.0  # the MC-dropout rate of those samples
     summary: str = ""
 
     @property
     def offline_only(self) -> bool:
         """What the stack cannot give: labels, a training bank, the encoder's features."""
-        return self.needs_labels or self.needs_familiarity or self.needs_features
+        return (self.needs_labels or self.needs_familiarity or self.needs_features
+                or self.draws > 0)
 
     def keys(self, s: Scored, rng: np.random.Generator,
              labels: np.ndarray | None = None) -> np.ndarray:
@@ -222,11 +230,26 @@ def _pool(scored: Sequence[Scored], per_object: int | Sequence[int],
         limits=limits,
         features=flat([s.features for s in scored], np.float32),
         familiarity=flat([s.familiarity for s in scored], np.float64),
+        draws=_flat_draws(scored),
         labels=None if labels is None else flat(list(labels), np.float32),
         explored=explored)
 
 
+def _flat_draws(scored: Sequence[Scored]) -> np.ndarray | None:
+    """(S, C) draws of every object with candidates side by side, or None if one lacks them."""
+    parts = [s.draws for s in scored if len(s.affordance)]
+    if not parts or any(d is None for d in parts):
+        return None
+    return np.concatenate([np.asarray(d, np.float64) for d in parts], axis=1)
+
+
 _KEYED = sel.key_rule
+THOMPSON_DRAWS = 16  # posterior samples per candidate and round
+# the masks' rate: 0.5 gives a Bernoulli mask its widest spread, 0.2 (``thompson_light``) a
+# posterior held closer to the mean; the head was trained without dropout, so neither is a
+# calibrated posterior and the benchmark chooses between them (bench/RESEARCH.md)
+THOMPSON_DROPOUT = 0.5
+THOMPSON_LIGHT_DROPOUT = 0.2
 _ALL: dict[str, Strategy] = {
     "similarity": Strategy("similarity", _KEYED(_similarity), stops_at_bar=True,
                            summary="the paper's rule (Where2Explore): the least familiar "
@@ -260,6 +283,13 @@ _ALL: dict[str, Strategy] = {
     "similarity_coverage": Strategy("similarity_coverage", sel.similarity_coverage,
                                     needs_features=True),
     "balanced": Strategy("balanced", sel.balanced),
+    "thompson": Strategy("thompson", sel.thompson, needs_features=True,
+                         draws=THOMPSON_DRAWS, dropout=THOMPSON_DROPOUT),
+    "thompson_light": Strategy("thompson_light", sel.thompson, needs_features=True,
+                               draws=THOMPSON_DRAWS, dropout=THOMPSON_LIGHT_DROPOUT),
+    "thompson_flat": Strategy("thompson_flat", partial(sel.thompson, cover=False),
+                              needs_features=True, draws=THOMPSON_DRAWS,
+                              dropout=THOMPSON_DROPOUT),
     "none": Strategy("none", explores=False),
 }
 

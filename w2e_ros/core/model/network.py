@@ -109,6 +109,18 @@ class ActionHead(nn.Module):
             return hp.new_zeros(B, N, K)
         return torch.cat(out).reshape(B, N, K)
 
+    def dropout_logits(self, feats: torch.Tensor, actions: torch.Tensor, draws: int,
+                       p: float, generator: torch.Generator) -> torch.Tensor:
+        """(draws, K) logits of paired queries (K, F), (K, 6) with the last hidden layer's
+        units dropped at rate ``p`` (MC dropout, inverted scaling): samples of a posterior
+        for Thompson-style choices. ``generator`` (on the CPU) draws the masks, so the
+        caller's other random streams are untouched."""
+        h = F.leaky_relu(self.point_fc(feats) + self.action_fc(actions), self.slope)
+        for layer in self.hidden:
+            h = F.leaky_relu(layer(h), self.slope)
+        keep = (torch.rand((draws, *h.shape), generator=generator) >= p).to(h.device, h.dtype)
+        return self.out(h[None] * keep / max(1.0 - p, 1e-6)).squeeze(-1)
+
     def _rest_(self, h: torch.Tensor) -> torch.Tensor:
         """``_rest`` on a fresh tensor, overwriting it (no extra copy of a chunk)."""
         h = F.leaky_relu_(h, self.slope)
