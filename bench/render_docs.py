@@ -405,6 +405,34 @@ def load_test() -> str:
         "", f"Source: `bench/results/load/summary.json` ({r['minutes']:.0f} min)."])
 
 
+def ci_repeat() -> str:
+    """`.ci/repeat --record`'s runs: per kind, runs and failures over every recorded session."""
+    entries = load("reliability/ci_repeat.json")
+    rows = ["| runs of | runs | with a failure | tests per run | mean wall time | commits | "
+            "dates |", "|---|---|---|---|---|---|---|"]
+    for kind, label in (("full", "the full suite on a clean clone (`.ci/run`)"),
+                        ("ros", "the ROS-heavy files")):
+        runs = [(e, r) for e in entries for r in e["runs"] if r["kind"] == kind]
+        if not runs:
+            continue
+        bad = sum(1 for _, r in runs if r["exit"] != 0 or r["failed"])
+        tests = sorted({r["tests"] for _, r in runs})
+        commits = sorted({e["commit"] for e, _ in runs})
+        dates = sorted({e["started"][:10] for e, _ in runs})
+        span = str(tests[0]) if len(tests) == 1 else f"{tests[0]}-{tests[-1]}"
+        rows.append(f"| {label} | {len(runs)} | {bad} | {span} "
+                    f"| {sum(r['seconds'] for _, r in runs) / len(runs) / 60:.1f} min "
+                    f"| {', '.join(commits)} | {', '.join(dates)} |")
+    failed: dict[str, int] = {}
+    for e in entries:
+        for r in e["runs"]:
+            for t in r["failed"]:
+                failed[t] = failed.get(t, 0) + 1
+    tail = (["", "Failed: " + "; ".join(f"`{t}` ({k})" for t, k in failed.items()) + "."]
+            if failed else ["", "No test failed in any recorded run."])
+    return "\n".join([*rows, *tail, "", "Source: `bench/results/reliability/ci_repeat.json`."])
+
+
 # --- the real arm and outcomes from clouds (docs/real_robot.md) ----------------------------
 
 def arm_reach() -> str:
@@ -453,6 +481,7 @@ BLOCKS: dict[str, Callable[[], str]] = {
     "reliability-respawn": respawn,
     "reliability-faults": faults,
     "reliability-load": load_test,
+    "reliability-ci": ci_repeat,
     "arm-reach": arm_reach,
     "arm-sim": arm_sim,
     "outcome-agreement": outcome_agreement,
