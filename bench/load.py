@@ -1,7 +1,7 @@
 """The stack under load: a long explore, a second client, and Kinect-size clouds beside it.
 
     .venv/bin/python bench/load.py [--interactions 200] [--minutes 10] \
-        [--out bench/results/load/summary.json]
+        [--feature-cache-clouds N] [--out bench/results/load/summary.json]
 
 The whole stack runs (random-weight models: the plumbing is measured, not the learning). At
 once, on the stack's domain:
@@ -87,13 +87,18 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--interactions", type=int, default=200, help="in all, over the 5 doors")
     p.add_argument("--minutes", type=float, default=10.0, help="of camera-size clouds")
+    p.add_argument("--feature-cache-clouds", type=int, default=None,
+                   help="the inference node's feature_cache_clouds (default: its config's); "
+                   "below the explore's clouds, the run goes past the cache's cap")
     p.add_argument("--out", default="bench/results/load/summary.json")
     a = p.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="w2e_load_"))
     budget = max(1, a.interactions // len(INSTANCES))
     env = ros_env(domain_id=pick_domain_id(), log_dir=tmp / "ros_log")
     extra = {
-        "inference": [*random_model_args(tmp), "-p", "finetune_steps:=2"],
+        "inference": [*random_model_args(tmp), "-p", "finetune_steps:=2",
+                      *(["-p", f"feature_cache_clouds:={a.feature_cache_clouds}"]
+                        if a.feature_cache_clouds is not None else [])],
         "planner": ["-p", "points_per_object:=64", "-p", f"max_budget:={budget}",
                     "-p", f"exploration_log_dir:={tmp / 'exploration'}"],
     }
@@ -140,6 +145,8 @@ def main() -> int:
         "rss_slope_mb_per_min": {n: (None if (v := slope_mb_per_min(s)) is None
                                      else round(v, 2)) for n, s in rss.items()},
         "minutes": round((time.monotonic() - t0) / 60.0, 1),
+        "feature_cache_clouds": a.feature_cache_clouds,
+        "rss_mb": {n: [[round(t), round(mb)] for t, mb in s] for n, s in rss.items()},
         "command": "bench/load.py " + " ".join(sys.argv[1:]),
     }
     out = Path(a.out)
