@@ -384,8 +384,9 @@ def faults() -> str:
     return "\n".join([*rows, "", "Source: `bench/results/fault_injection/summary.json`."])
 
 
-def load_test() -> str:
-    r = load("load/summary.json")
+def load_test(name: str = "summary") -> str:
+    """``reliability-load`` (bench/results/load/summary.json) or ``load:NAME`` (load/NAME.json)."""
+    r = load(f"load/{name}.json")
     nodes = list(r["rss_mb_first_last"])
     ex, cl = r["explore"], r["clouds"]
     alive = sum(r["nodes_alive_at_end"].values())
@@ -402,7 +403,9 @@ def load_test() -> str:
             f"{a} -> {b}" for a, b in r["rss_mb_first_last"].values()) + " |",
         "| slope, second half (MB/min) | " + " | ".join(
             f"{r['rss_slope_mb_per_min'][n]:.1f}" for n in nodes) + " |",
-        "", f"Source: `bench/results/load/summary.json` ({r['minutes']:.0f} min)."])
+        "", f"Source: `bench/results/load/{name}.json` ({r['minutes']:.0f} min"
+        + (f", the inference node's `feature_cache_clouds` {r['feature_cache_clouds']}"
+           if r.get("feature_cache_clouds") is not None else "") + ")."])
 
 
 def ci_repeat() -> str:
@@ -491,6 +494,7 @@ KINDS: dict[str, Callable[[str], str]] = {
     "demo-seeds": demo_seeds,
     "demo-summary": lambda sub: demo_seeds(sub, per_seed=False),
     "learnability": learnability,
+    "load": load_test,
 }
 
 
