@@ -29,7 +29,7 @@ from w2e_msgs.srv import PredictMaps
 from waits import Liveliness, wait_until
 
 from w2e_ros.nodes.planner_node import PlannerNode, StackError
-from w2e_ros.ros.peers import LEASE_S
+from w2e_ros.ros.peers import GRACE_S, LEASE_S
 from w2e_ros.ros.processes import clean_shm_at_exit, pick_domain_id, ros_env
 
 clean_shm_at_exit()
@@ -171,7 +171,7 @@ def test_a_server_killed_mid_request_fails_the_call_within_its_lease(planner):
     print(f"\n[peers] dead server seen {took:.1f} s after the SIGKILL (lease {LEASE_S:.0f} s): "
           f"{out['error']}")
     assert out["error"] == ("predict_maps: inference_node is gone (no sign of life on "
-                            f"predict_maps for {LEASE_S:.0f} s: did its process die?)")
+                            f"predict_maps for {LEASE_S + GRACE_S:.0f} s: did its process die?)")
 
 
 def test_a_server_that_does_not_announce_is_not_judged(planner):
@@ -298,6 +298,32 @@ def test_liveliness_back_before_the_new_announcement_is_not_the_dead_instance(pl
     watch._on_liveliness(SimpleNamespace(alive_count=1))
     assert watch.current() is None
     assert watch.wait_serving(LEASE_S + 1.0) and watch.current() == new
+
+
+def test_a_lapse_shorter_than_the_grace_does_not_fail_a_call_in_flight(planner):
+    """The CI failure of 2026-12-08: on a loaded machine the bridge's lease lapsed while it
+    loaded a scene, and the explore failed as "sim_bridge is gone". A call in flight fails
+    only when liveliness stays lost past GRACE_S; a new request still waits for a live
+    server (the clock is the watch's own, so no wall time is asserted)."""
+    from w2e_ros.ros.peers import PeerWatch
+
+    now = [1000.0]
+    watch = PeerWatch(planner[0], "w2e_test_lapse", "test server")
+    watch.clock = lambda: now[0]
+    inst = f"host-elsewhere:1:{time.time_ns()}"
+    watch._on_instance(String(data=inst))
+    check = watch.pin(1.0)
+    watch._on_liveliness(SimpleNamespace(alive_count=0))  # one late assertion
+    now[0] += GRACE_S - 0.5
+    assert check() is None  # the call keeps waiting for its answer
+    assert watch.current() is None  # a new request waits for a live server
+    watch._on_liveliness(SimpleNamespace(alive_count=1))  # the next assertion arrives
+    now[0] += 10 * GRACE_S
+    assert check() is None and watch.current() == inst  # back for a lease: the same process
+    watch._on_liveliness(SimpleNamespace(alive_count=0))  # lost for good
+    now[0] += GRACE_S + 0.1
+    assert check() == ("test server is gone (no sign of life on w2e_test_lapse for "
+                       f"{LEASE_S + GRACE_S:.0f} s: did its process die?)")
 
 
 def test_a_server_in_this_process_is_never_judged_dead(planner):
