@@ -341,7 +341,7 @@ def pooled_success() -> str:
 def respawn() -> str:
     rows = ["| code | rounds | kills | next call executed a trial | kill -> answer median / max "
             "| file |", "|---|---|---|---|---|---|"]
-    for name, label in (("respawn.json", "this release"),
+    for name, label in (("respawn.json", "2026-12-07, before the watch's 2 s grace (e39e8e9)"),
                         ("respawn_before_fix.json", "before the fix (bec8a8c)")):
         r = load(f"reliability/{name}")
         k = r["kill_to_answer_s"]
