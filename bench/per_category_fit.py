@@ -12,7 +12,7 @@ observations and seeds), the seeds ending below none, and the per-category AUROC
 largest budget.
 
     .venv/bin/python bench/per_category_fit.py --pooled results/ts_val_r \
-        --per-category results/pc_val_r --seeds 0 1 2 3 4 \
+        --per-category results/pc_val_r results/pc_val_r2 --seeds 0 1 2 3 4 5 6 7 8 9 \
         --out bench/results/per_category_fit/validation
 """
 
@@ -54,9 +54,10 @@ def resample(obs: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--pooled", required=True, help="w2e benchmark --out, --mode all")
-    ap.add_argument("--per-category", required=True,
-                    help="w2e benchmark --out, --mode per-category")
+    ap.add_argument("--pooled", nargs="+", required=True,
+                    help="w2e benchmark --out folders, --mode all (with none)")
+    ap.add_argument("--per-category", nargs="+", required=True,
+                    help="w2e benchmark --out folders, --mode per-category")
     ap.add_argument("--method", default="random")
     ap.add_argument("--combo", default="cfw")
     ap.add_argument("--primitive", default="pull")
@@ -65,11 +66,17 @@ def main() -> None:
     ap.add_argument("--out", required=True)
     a = ap.parse_args()
     name = f"predictions_{a.combo}_{a.primitive}.npz"
-    pooled, test = load(Path(a.pooled) / name)
-    per_cat, test2 = load(Path(a.per_category) / name)
-    for k in ("success", "valid", "obs"):
-        if not np.array_equal(test[k], test2[k]):
-            raise SystemExit(f"the two benchmarks judged different rows ({k} differs)")
+    pooled: dict = {}
+    per_cat: dict = {}
+    test: dict = {}
+    for target, dirs in ((pooled, a.pooled), (per_cat, a.per_category)):
+        for d in dirs:
+            preds, t = load(Path(d) / name)
+            target.update(preds)
+            for k in ("success", "obs"):
+                if test and not np.array_equal(test[k], t[k]):
+                    raise SystemExit(f"{d} judged other rows than the first folder ({k})")
+            test = test or t
     ok = np.ones(len(test["success"]), bool)  # every judged row, as the benchmark scores them
     y, obs, cat = test["success"], test["obs"], test["category"]
     budgets = sorted({b for (m, _, b) in pooled if m == a.method and b > 0})
