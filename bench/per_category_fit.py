@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from w2e_ros.core.model.metrics import auroc
+from w2e_ros.core.model.metrics import affordance_fscore_from_probs, auroc
 
 ARMS = ("none", "pooled", "per_category")
 
@@ -41,8 +41,7 @@ def load(path: Path) -> tuple[dict[tuple[str, int, int], np.ndarray], dict[str, 
 
 
 def fscore(p: np.ndarray, y: np.ndarray) -> float:
-    hit = p > 0.5
-    return 2.0 * float(np.sum(hit & y)) / max(float(hit.sum() + y.sum()), 1.0)
+    return affordance_fscore_from_probs(p, y)["fscore"]
 
 
 def resample(obs: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -77,21 +76,20 @@ def main() -> None:
                 if test and not np.array_equal(test[k], t[k]):
                     raise SystemExit(f"{d} judged other rows than the first folder ({k})")
             test = test or t
-    ok = np.ones(len(test["success"]), bool)  # every judged row, as the benchmark scores them
-    y, obs, cat = test["success"], test["obs"], test["category"]
+    y, obs, cat = test["success"], test["obs"], test["category"]  # every judged row
     budgets = sorted({b for (m, _, b) in pooled if m == a.method and b > 0})
-    none = pooled[("none", a.seeds[0], 0)][ok]
+    none = pooled[("none", a.seeds[0], 0)]
 
     def arm(which: str, s: int, b: int) -> np.ndarray:
         if which == "none":
             return none
         src = pooled if which == "pooled" else per_cat
-        return src[(a.method, s, b)][ok]
+        return src[(a.method, s, b)]
 
     rng = np.random.default_rng(0)
     draws = [resample(obs, rng) for _ in range(a.boot)]
     report: dict = {"method": a.method, "seeds": a.seeds, "budgets": budgets,
-                    "judged_rows": int(ok.sum()), "positives": int(y.sum()), "by_budget": {}}
+                    "judged_rows": len(y), "positives": int(y.sum()), "by_budget": {}}
     for b in budgets:
         row: dict = {}
         for metric, fn in (("auroc", auroc), ("fscore", fscore)):

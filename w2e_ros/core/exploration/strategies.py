@@ -175,7 +175,8 @@ class Strategy:
 
     @property
     def offline_only(self) -> bool:
-        """What the stack cannot give: labels, a training bank, the encoder's features."""
+        """What the stack cannot give: labels, a training bank, the encoder's features or
+        posterior draws."""
         return (self.needs_labels or self.needs_familiarity or self.needs_features
                 or self.draws > 0)
 
@@ -214,11 +215,11 @@ def _pool(scored: Sequence[Scored], per_object: int | Sequence[int],
     limits = (np.full(len(scored), per_object, np.int64) if isinstance(per_object, int)
               else np.asarray(per_object, np.int64))
 
-    def flat(arrays: list[np.ndarray | None], dtype: type) -> np.ndarray | None:
+    def flat(arrays: list[np.ndarray | None], dtype: type, axis: int = 0) -> np.ndarray | None:
         if any(a is None for a, n in zip(arrays, sizes, strict=True) if n):
             return None
         parts = [np.asarray(a, dtype) for a, n in zip(arrays, sizes, strict=True) if n]
-        return np.concatenate(parts) if parts else None
+        return np.concatenate(parts, axis=axis) if parts else None
 
     return Pool(
         obj=np.repeat(np.arange(len(scored)), sizes),
@@ -230,17 +231,9 @@ def _pool(scored: Sequence[Scored], per_object: int | Sequence[int],
         limits=limits,
         features=flat([s.features for s in scored], np.float32),
         familiarity=flat([s.familiarity for s in scored], np.float64),
-        draws=_flat_draws(scored),
+        draws=flat([s.draws for s in scored], np.float64, axis=1),  # (S, C)
         labels=None if labels is None else flat(list(labels), np.float32),
         explored=explored)
-
-
-def _flat_draws(scored: Sequence[Scored]) -> np.ndarray | None:
-    """(S, C) draws of every object with candidates side by side, or None if one lacks them."""
-    parts = [s.draws for s in scored if len(s.affordance)]
-    if not parts or any(d is None for d in parts):
-        return None
-    return np.concatenate([np.asarray(d, np.float64) for d in parts], axis=1)
 
 
 _KEYED = sel.key_rule

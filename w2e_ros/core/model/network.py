@@ -68,11 +68,15 @@ class ActionHead(nn.Module):
         self.out = nn.Linear(hidden, 1)
         self.slope = slope
 
-    def _rest(self, h: torch.Tensor) -> torch.Tensor:
+    def _last_hidden(self, h: torch.Tensor) -> torch.Tensor:
+        """The first layer's sum ``h`` through the activations to the last hidden layer."""
         h = F.leaky_relu(h, self.slope)
         for layer in self.hidden:
             h = F.leaky_relu(layer(h), self.slope)
-        return self.out(h).squeeze(-1)
+        return h
+
+    def _rest(self, h: torch.Tensor) -> torch.Tensor:
+        return self.out(self._last_hidden(h)).squeeze(-1)
 
     def forward(self, feats: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         """Paired queries: feats (..., F), actions (..., 6) -> logits (...)."""
@@ -115,9 +119,7 @@ class ActionHead(nn.Module):
         units dropped at rate ``p`` (MC dropout, inverted scaling): samples of a posterior
         for Thompson-style choices. ``generator`` (on the CPU) draws the masks, so the
         caller's other random streams are untouched."""
-        h = F.leaky_relu(self.point_fc(feats) + self.action_fc(actions), self.slope)
-        for layer in self.hidden:
-            h = F.leaky_relu(layer(h), self.slope)
+        h = self._last_hidden(self.point_fc(feats) + self.action_fc(actions))
         keep = (torch.rand((draws, *h.shape), generator=generator) >= p).to(h.device, h.dtype)
         return self.out(h[None] * keep / max(1.0 - p, 1e-6)).squeeze(-1)
 
